@@ -1,0 +1,26 @@
+"""Error types. Every error a user can cause derives from MeridianError; the CLI turns it
+into a one-line message and exit code 1."""
+
+from __future__ import annotations
+
+__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError"]
+
+
+class MeridianError(Exception):
+    """Root of all errors caused by input, configuration or environment."""
+
+
+class ConfigError(MeridianError):
+    """A configuration file or override is invalid; the message names the key."""
+
+
+class SequenceFormatError(MeridianError):
+    """A sequence folder violates FORMAT.md; the message names the file and the problem."""
+
+
+class OrthophotoError(SequenceFormatError):
+    """An orthophoto or its georeference is unreadable or unsupported."""
+
+
+class SimulationError(MeridianError):
+    """The simulator cannot build the requested world, trajectory or sequence."""

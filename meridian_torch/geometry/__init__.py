@@ -1,0 +1,1 @@
+"""Rigid-body geometry shared by all stages (numpy, float64)."""

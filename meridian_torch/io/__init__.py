@@ -1,0 +1,1 @@
+"""Reading and writing on-disk formats: sequence folders, pose files, orthophotos."""
