@@ -1,0 +1,139 @@
+"""Primitive containers shared by the aerial and ground sides and by matching.
+
+A `PrimitiveSet` holds the points and lines of one aerial patch or one ground submap in one
+metric frame (world for aerial, odom x-y for ground). A `PrimitiveBatch` stacks P sets into
+padded tensors with `valid` masks, the form every batched stage consumes.
+
+Lines are stored by two endpoints plus a kind:
+- SEGMENT: a bounded segment between endpoints[0] and endpoints[1];
+- RAY: starts at endpoints[0] and extends without bound through endpoints[1];
+- INFINITE: the unbounded line through both endpoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from enum import IntEnum
+
+import torch
+
+__all__ = ["LineKind", "PrimitiveSet", "PrimitiveBatch", "stack_primitive_sets"]
+
+
+class LineKind(IntEnum):
+    SEGMENT = 0
+    RAY = 1
+    INFINITE = 2
+
+
+@dataclass(frozen=True)
+class PrimitiveSet:
+    points_xy: torch.Tensor  # (Np, 2) metres
+    point_descriptors: torch.Tensor  # (Np, D) L2-normalized
+    point_segment_ids: torch.Tensor  # (Np,) int64 id of the source segment
+    line_endpoints: torch.Tensor  # (Nl, 2, 2) metres
+    line_kinds: torch.Tensor  # (Nl,) int64 LineKind
+    line_descriptors: torch.Tensor  # (Nl, D) L2-normalized
+    line_segment_ids: torch.Tensor  # (Nl,) int64 id of a source segment
+
+    def __post_init__(self) -> None:
+        n_points, n_lines = self.points_xy.shape[0], self.line_endpoints.shape[0]
+        expected = {
+            "points_xy": (n_points, 2),
+            "point_segment_ids": (n_points,),
+            "line_endpoints": (n_lines, 2, 2),
+            "line_kinds": (n_lines,),
+            "line_segment_ids": (n_lines,),
+        }
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                raise ValueError(f"PrimitiveSet.{name}: expected shape {shape}, got {tuple(getattr(self, name).shape)}")
+        if self.point_descriptors.shape[0] != n_points or self.line_descriptors.shape[0] != n_lines:
+            raise ValueError("PrimitiveSet: one descriptor per point and per line expected")
+        if self.point_descriptors.shape[1] != self.line_descriptors.shape[1]:
+            raise ValueError("PrimitiveSet: points and lines must share the descriptor dimension")
+
+    @property
+    def descriptor_dim(self) -> int:
+        return int(self.point_descriptors.shape[1])
+
+    @classmethod
+    def empty(cls, descriptor_dim: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> "PrimitiveSet":
+        f = dict(dtype=dtype, device=device)
+        i = dict(dtype=torch.int64, device=device)
+        return cls(
+            points_xy=torch.zeros(0, 2, **f),
+            point_descriptors=torch.zeros(0, descriptor_dim, **f),
+            point_segment_ids=torch.zeros(0, **i),
+            line_endpoints=torch.zeros(0, 2, 2, **f),
+            line_kinds=torch.zeros(0, **i),
+            line_descriptors=torch.zeros(0, descriptor_dim, **f),
+            line_segment_ids=torch.zeros(0, **i),
+        )
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "PrimitiveSet":
+        """Move every tensor to `device`; floating tensors also to `dtype`."""
+        moved = {}
+        for f in fields(self):
+            t = getattr(self, f.name)
+            moved[f.name] = t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+        return PrimitiveSet(**moved)
+
+
+@dataclass(frozen=True)
+class PrimitiveBatch:
+    """P primitive sets padded to common sizes; padded entries are zero and invalid."""
+
+    points_xy: torch.Tensor  # (P, Np, 2)
+    point_descriptors: torch.Tensor  # (P, Np, D)
+    point_valid: torch.Tensor  # (P, Np) bool
+    line_endpoints: torch.Tensor  # (P, Nl, 2, 2)
+    line_kinds: torch.Tensor  # (P, Nl) int64
+    line_descriptors: torch.Tensor  # (P, Nl, D)
+    line_valid: torch.Tensor  # (P, Nl) bool
+
+    def __len__(self) -> int:
+        return int(self.points_xy.shape[0])
+
+    def unbatch(self, index: int) -> PrimitiveSet:
+        """The index-th set without padding (segment ids are not kept in batches: -1)."""
+        pv, lv = self.point_valid[index], self.line_valid[index]
+        n_p, n_l = int(pv.sum()), int(lv.sum())
+        return PrimitiveSet(
+            points_xy=self.points_xy[index][pv],
+            point_descriptors=self.point_descriptors[index][pv],
+            point_segment_ids=torch.full((n_p,), -1, dtype=torch.int64, device=pv.device),
+            line_endpoints=self.line_endpoints[index][lv],
+            line_kinds=self.line_kinds[index][lv],
+            line_descriptors=self.line_descriptors[index][lv],
+            line_segment_ids=torch.full((n_l,), -1, dtype=torch.int64, device=lv.device),
+        )
+
+
+def _pad(tensors: list[torch.Tensor], length: int) -> torch.Tensor:
+    out = tensors[0].new_zeros((len(tensors), length) + tuple(tensors[0].shape[1:]))
+    for k, t in enumerate(tensors):
+        out[k, : t.shape[0]] = t
+    return out
+
+
+def stack_primitive_sets(sets: list[PrimitiveSet], min_points: int = 0, min_lines: int = 0) -> PrimitiveBatch:
+    """Pad and stack primitive sets (all with one descriptor dimension) into a batch."""
+    if not sets:
+        raise ValueError("stack_primitive_sets needs at least one set")
+    n_p = max([min_points] + [s.points_xy.shape[0] for s in sets])
+    n_l = max([min_lines] + [s.line_endpoints.shape[0] for s in sets])
+    device = sets[0].points_xy.device
+    ar_p = torch.arange(n_p, device=device)
+    ar_l = torch.arange(n_l, device=device)
+    counts_p = torch.tensor([s.points_xy.shape[0] for s in sets], device=device)
+    counts_l = torch.tensor([s.line_endpoints.shape[0] for s in sets], device=device)
+    return PrimitiveBatch(
+        points_xy=_pad([s.points_xy for s in sets], n_p),
+        point_descriptors=_pad([s.point_descriptors for s in sets], n_p),
+        point_valid=ar_p[None, :] < counts_p[:, None],
+        line_endpoints=_pad([s.line_endpoints for s in sets], n_l),
+        line_kinds=_pad([s.line_kinds for s in sets], n_l),
+        line_descriptors=_pad([s.line_descriptors for s in sets], n_l),
+        line_valid=ar_l[None, :] < counts_l[:, None],
+    )
