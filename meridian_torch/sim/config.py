@@ -91,6 +91,14 @@ class GroundRenderConfig(StrictModel):
     depth_noise_b: float = Field(default=0.005, ge=0)
     rgb_noise_std: float = Field(default=2.0, ge=0, description="pixel noise in 8-bit units")
     batch_size: int = Field(default=8, ge=1)
+    sun_azimuth_deg: float = Field(default=135.0, description="direction the sun shines from, clockwise from north")
+    sun_elevation_deg: float = Field(default=45.0, gt=0, le=90)
+    ambient: float = Field(default=0.45, ge=0, le=1, description="unlit fraction of the light")
+    haze_strength: float = Field(default=0.35, ge=0, le=1, description="blend towards the horizon colour at render distance")
+    samples_per_ray: int = Field(default=640, ge=16, description="height samples per image column, geometric in distance")
+    min_distance_m: float = Field(default=0.2, gt=0, description="nearest geometry a ray can hit")
+    column_oversample: float = Field(default=1.5, ge=0.5, description="ray columns per image column")
+    row_oversample: float = Field(default=1.25, ge=0.5, description="hit-table rows per image row")
 
 
 class TrajectoryConfig(StrictModel):
@@ -104,6 +112,7 @@ class TrajectoryConfig(StrictModel):
     kitti_times_path: str | None = None
     alignment_path: str | None = Field(default=None, description="kitti_gt_alignment.json-style similarity into the class raster")
     alignment_map: str | None = None
+    alignment_y_up: bool = Field(default=True, description="alignment rows count from the raster's south edge (stored y-up)")
     max_frames: int | None = Field(default=None, ge=1)
 
     @model_validator(mode="after")
