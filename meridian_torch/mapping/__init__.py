@@ -1,0 +1,1 @@
+"""Aerial map building, ground segment mapping and submaps, and segment → primitive conversion."""

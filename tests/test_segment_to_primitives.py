@@ -1,0 +1,270 @@
+"""Segment → primitive conversion on hand-built segments (dense point grids at 0.1 m)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
+from scipy.spatial import Delaunay
+
+from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.mapping.segment_to_primitives import (
+    alpha_shape_outline,
+    fit_circle,
+    fuse_lines,
+    mergeable_line_pairs,
+    segments_to_primitives,
+)
+from meridian_torch.types import LineKind
+
+SPACING = 0.1
+CFG = PrimitiveConfig()
+
+
+def grid(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
+    xs = np.arange(x0, x1 + 1e-9, SPACING)
+    ys = np.arange(y0, y1 + 1e-9, SPACING)
+    return np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+
+
+def disc(radius: float, centre: tuple[float, float]) -> np.ndarray:
+    g = grid(-radius, radius, -radius, radius)
+    return g[np.linalg.norm(g, axis=1) <= radius] + np.asarray(centre)
+
+
+def rotate(points: np.ndarray, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return points @ np.array([[c, -s], [s, c]]).T
+
+
+def convert(segments: list[np.ndarray], descriptors: torch.Tensor | None = None, **kwargs):
+    if descriptors is None:
+        descriptors = torch.eye(8)[: len(segments)]
+    areas = np.array([len(p) * SPACING**2 for p in segments])  # pixel-count areas, aerial style
+    return segments_to_primitives(segments, descriptors, CFG, areas_m2=areas, **kwargs)
+
+
+def lengths(endpoints: torch.Tensor) -> np.ndarray:
+    e = endpoints.double().numpy()
+    return np.linalg.norm(e[:, 1] - e[:, 0], axis=1)
+
+
+def assert_matches_side(
+    line: np.ndarray, a: np.ndarray, b: np.ndarray, tol_m: float = 0.3, tol_deg: float = 2.0, tol_end_m: float = 0.35
+):
+    """Line within tol_m of side a-b's line, within tol_deg of its direction, ending within tol_end_m of a and b.
+
+    The end tolerance exceeds tol_m slightly: at some rotations the 0.25 m outline grid cuts a
+    corner by one short edge that is too oblique to fuse (measured up to 0.30 m).
+    """
+    u = (b - a) / np.linalg.norm(b - a)
+    t = np.sort((line - a) @ u)
+    offset = np.abs((line - a) @ np.array([-u[1], u[0]]))
+    assert offset.max() < tol_m
+    assert abs(t[0]) < tol_end_m and abs(t[1] - np.linalg.norm(b - a)) < tol_end_m
+    d = line[1] - line[0]
+    sin = abs(d[0] * u[1] - d[1] * u[0]) / np.linalg.norm(d)
+    assert math.degrees(math.asin(min(sin, 1.0))) < tol_deg
+
+
+def test_small_disc_is_one_point_at_its_centre():
+    for out in (convert([disc(1.0, (3.3, -4.1))]), segments_to_primitives([disc(1.0, (3.3, -4.1))], torch.eye(4)[:1], CFG)):
+        assert out.points_xy.shape == (1, 2) and out.line_endpoints.shape[0] == 0
+        assert torch.allclose(out.points_xy[0], torch.tensor([3.3, -4.1]), atol=0.02)
+        assert out.point_segment_ids.tolist() == [0]
+
+
+def test_thin_bar_is_one_line_along_it():
+    bar = rotate(grid(0.0, 8.0, 0.0, 0.15), 0.4) + np.array([5.0, 2.0])
+    out = convert([bar])
+    assert out.points_xy.shape[0] == 0 and out.line_endpoints.shape[0] == 1
+    assert abs(lengths(out.line_endpoints)[0] - 8.0) < 0.1
+    a = np.array([5.0, 2.0]) + rotate(np.array([[0.0, 0.07]]), 0.4)[0]
+    b = np.array([5.0, 2.0]) + rotate(np.array([[8.0, 0.07]]), 0.4)[0]
+    assert_matches_side(out.line_endpoints[0].double().numpy(), a, b, tol_m=0.1, tol_deg=0.5, tol_end_m=0.1)
+
+
+def test_midsize_disc_is_a_circle_point():
+    out = convert([disc(3.5, (1.0, 2.0))])
+    assert out.points_xy.shape == (1, 2) and out.line_endpoints.shape[0] == 0
+    assert torch.allclose(out.points_xy[0], torch.tensor([1.0, 2.0]), atol=0.05)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    angle=st.floats(0.0, 2.0 * math.pi),
+    tx=st.floats(-500.0, 500.0),
+    ty=st.floats(-500.0, 500.0),
+)
+def test_large_square_becomes_its_four_sides(angle: float, tx: float, ty: float):
+    square = rotate(grid(0.0, 20.0, 0.0, 20.0) - 10.0, angle) + np.array([tx, ty])
+    out = convert([square])
+    assert out.points_xy.shape[0] == 0
+    ln = lengths(out.line_endpoints)
+    long = out.line_endpoints[torch.from_numpy(ln > 1.0)].double().numpy()
+    assert len(long) == 4 and ln[ln <= 1.0].sum() < 1.0  # leftovers: at most a few corner edges
+    corners = rotate(np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]), angle) + np.array([tx, ty])
+    for k in range(4):
+        a, b = corners[k], corners[(k + 1) % 4]
+        matching = [line for line in long if np.linalg.norm(line.mean(axis=0) - (a + b) / 2) < 1.0]
+        assert len(matching) == 1
+        assert_matches_side(matching[0], a, b)
+    assert (out.line_kinds == int(LineKind.SEGMENT)).all()
+
+
+def test_point_outside_the_border_box_is_dropped():
+    box = (0.0, 10.0, 0.0, 10.0)
+    assert convert([disc(1.0, (5.0, 5.0))], border_box=box).points_xy.shape[0] == 1
+    out = convert([disc(1.0, (0.3, 5.0))], border_box=box)  # centre within the 0.5 m margin
+    assert out.points_xy.shape[0] == 0 and out.line_endpoints.shape[0] == 0
+
+
+def test_square_at_the_border_keeps_only_the_sides_inside():
+    out = convert([grid(0.0, 20.0, 0.0, 20.0)], border_box=(-5.0, 20.0, -5.0, 25.0))
+    ends = out.line_endpoints.double().numpy()
+    assert (ends[..., 0] <= 19.5 + 1e-6).all()  # nothing from the right side (x = 20)
+    long = ends[lengths(out.line_endpoints) > 1.0]
+    assert len(long) == 3
+    assert_matches_side(next(ln for ln in long if ln[:, 0].max() < 1.0), np.array([0.0, 0.0]), np.array([0.0, 20.0]))
+    for y in (0.0, 20.0):
+        side = next(ln for ln in long if abs(ln[:, 1].mean() - y) < 0.5)
+        assert_matches_side(side, np.array([0.0, y]), np.array([19.5, y]))
+
+
+def test_collinear_lines_fuse_only_with_similar_descriptors():
+    lines = np.array([[[0.0, 0.0], [3.0, 0.0]], [[3.5, 0.05], [6.5, 0.05]]])
+    apart = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    close = torch.tensor([[1.0, 0.0], [0.9, math.sqrt(1 - 0.81)]])
+    ends, desc, members = fuse_lines(lines, apart, CFG)
+    assert len(ends) == 2 and [m.tolist() for m in members] == [[0], [1]]
+    ends, desc, members = fuse_lines(lines, close, CFG)
+    assert len(ends) == 1 and members[0].tolist() == [0, 1]
+    assert abs(np.linalg.norm(ends[0, 1] - ends[0, 0]) - 6.5) < 0.01
+    expected = torch.nn.functional.normalize(3.0 * close[0] + 3.0 * close[1], dim=0)
+    assert torch.allclose(desc[0], expected, atol=1e-6)
+
+
+def slow_merge_test(a: np.ndarray, b: np.ndarray, da: np.ndarray, db: np.ndarray, cfg: PrimitiveConfig) -> bool:
+    """The reference's merge test of lines A (earlier) and B, one pair at a time."""
+    la, lb = np.linalg.norm(a[1] - a[0]), np.linalg.norm(b[1] - b[0])
+    if np.linalg.norm(a[0] - b[0]) > la + lb + cfg.line_merge_dist_m:
+        return False
+    ua, ub = (a[1] - a[0]) / la, (b[1] - b[0]) / lb
+    sin = abs(ua[0] * ub[1] - ua[1] * ub[0])
+    tol = math.radians(cfg.line_merge_angle_deg)
+    if min(la, lb) < cfg.line_merge_short_m:
+        tol = max(tol, min(tol * cfg.line_merge_short_m / min(la, lb), math.pi / 4))
+    if sin >= math.sin(tol) or float(da @ db) < cfg.line_merge_semantic_sim:
+        return False
+
+    def point_segment(p, s):
+        d = s[1] - s[0]
+        t = min(max(float((p - s[0]) @ d / (d @ d)), 0.0), 1.0)
+        return s[0] + t * d
+
+    def line_dist(p, s, u):
+        w = p - s[0]
+        return abs(u[0] * w[1] - u[1] * w[0])
+
+    candidates = [(a[0], point_segment(a[0], b)), (a[1], point_segment(a[1], b))]
+    candidates += [(point_segment(b[0], a), b[0]), (point_segment(b[1], a), b[1])]
+    on_a, on_b = min(candidates, key=lambda pq: np.linalg.norm(pq[0] - pq[1]))
+    gap = np.linalg.norm(on_a - on_b)
+    if sin < 1e-3:
+        return line_dist(b[0], a, ua) <= cfg.line_merge_perp_dist_m and gap < cfg.line_merge_dist_m
+    shapely_gap = shapely.distance(shapely.LineString(a), shapely.LineString(b))
+    if shapely_gap == 0.0:  # crossing segments: both closest points are the crossing
+        return True
+    return (
+        line_dist(on_a, b, ub) <= cfg.line_merge_perp_dist_m
+        and line_dist(on_b, a, ua) <= cfg.line_merge_perp_dist_m
+        and gap < cfg.line_merge_dist_m
+    )
+
+
+def test_vectorized_merge_test_equals_slow_pairwise_loop():
+    rng = np.random.default_rng(7)
+    n = 160
+    start = rng.uniform(0.0, 8.0, (n, 2))
+    angle = rng.choice([0.0, 0.05, 0.3, 1.2], n) + rng.normal(0.0, 0.05, n)
+    length = rng.choice([0.2, 0.6, 2.0, 5.0], n) * rng.uniform(0.8, 1.2, n)
+    ends = np.stack([start, start + length[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)], 1)
+    ends[::7, :, 1] = ends[::7, :1, 1] + rng.uniform(-0.4, 0.4, (len(ends[::7]), 1))  # exactly parallel ones
+    clusters = np.eye(16)[:3]
+    noise = rng.normal(0.0, rng.choice([0.03, 0.12], n)[:, None], (n, 16))  # similarities near 0.8 too
+    desc = torch.nn.functional.normalize(torch.from_numpy(clusters[rng.integers(0, 3, n)] + noise), dim=-1)
+    pairs, _ = mergeable_line_pairs(ends, desc, CFG)
+    d = desc.numpy()
+    slow = {(i, j) for i in range(n) for j in range(i + 1, n) if slow_merge_test(ends[i], ends[j], d[i], d[j], CFG)}
+    assert len(slow) > 50  # the scene exercises the test
+    assert {tuple(p) for p in pairs.tolist()} == slow
+
+
+def test_outline_band_equals_full_triangulation():
+    rng = np.random.default_rng(3)
+    for spacing in (0.1, 0.3):
+        xs = np.arange(-8.0, 8.0, spacing)
+        g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+        inside = (np.linalg.norm(g - [-2.0, 0.0], axis=1) < 4.5) | ((np.abs(g[:, 0] - 3.0) < 3.5) & (np.abs(g[:, 1]) < 1.5))
+        inside &= np.linalg.norm(g - rng.uniform(-2, 2, 2), axis=1) > 1.2  # a hole
+        pts = g[inside]
+        ring = alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m)
+        # reference: all cell-mean points, Delaunay, circumradius < 1 m, polygonize + union
+        cells = np.floor(pts / CFG.alpha_grid_m).astype(np.int64)
+        _, inv = np.unique(cells, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        means = np.stack([np.bincount(inv, pts[:, k]) for k in range(2)], 1) / np.bincount(inv)[:, None]
+        tri = Delaunay(means).simplices
+        keep = [shapely.Polygon(means[t]) for t in tri if _circumradius(means[t]) < 1.0 / CFG.alpha]
+        full = shapely.union_all(keep)
+        assert isinstance(full, shapely.Polygon)
+        expected = shapely.get_coordinates(full.exterior)[:-1]
+        assert ring is not None and {tuple(np.round(p, 9)) for p in ring} == {tuple(np.round(p, 9)) for p in expected}
+
+
+def _circumradius(t: np.ndarray) -> float:
+    a, b, c = (np.linalg.norm(t[i] - t[(i + 1) % 3]) for i in range(3))
+    area = 0.5 * abs((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1]) - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
+    return math.inf if area == 0 else a * b * c / (4.0 * area)
+
+
+def test_fit_circle_recovers_a_circle():
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    centre, radius, residual = fit_circle(np.stack([3 + 2 * np.cos(t), -1 + 2 * np.sin(t)], 1))
+    assert np.allclose(centre, [3, -1]) and abs(radius - 2) < 1e-9 and residual < 1e-9
+    assert fit_circle(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])) is None
+
+
+def test_outputs_are_unit_norm_and_typed():
+    segments = [disc(1.0, (0.0, 0.0)), grid(5.0, 25.0, 0.0, 20.0), grid(25.2, 40.0, 0.0, 20.0), disc(3.5, (-10.0, 0.0))]
+    desc = torch.randn(4, 32, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 5.0
+    out = convert(segments, desc, segment_ids=[10, 11, 12, 13])
+    assert out.points_xy.dtype == torch.float64 and out.line_endpoints.dtype == torch.float64
+    assert out.points_xy.shape[0] == 2 and out.line_endpoints.shape[0] >= 8
+    for d in (out.point_descriptors, out.line_descriptors):
+        assert torch.allclose(d.norm(dim=-1), torch.ones(len(d), dtype=torch.float64))
+    assert set(out.line_segment_ids.tolist()) == {11, 12}
+    assert set(out.point_segment_ids.tolist()) == {10, 13}
+    out32 = convert(segments, desc.float())
+    assert out32.line_endpoints.dtype == torch.float32
+
+
+def test_long_lines_become_infinite_when_configured():
+    cfg = PrimitiveConfig(line_len_to_infinite=15.0)
+    out = segments_to_primitives([grid(0.0, 20.0, 0.0, 10.0)], torch.eye(2)[:1], cfg)
+    long = torch.from_numpy(lengths(out.line_endpoints) > 15.0)
+    assert long.sum() == 2
+    assert (out.line_kinds[long] == int(LineKind.INFINITE)).all() and (out.line_kinds[~long] == int(LineKind.SEGMENT)).all()
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValidationError):
+        PrimitiveConfig(line_merge_perp_dist_m=2.0, line_merge_dist_m=1.0)
+    with pytest.raises(ValidationError):
+        PrimitiveConfig(unknown_key=1.0)
