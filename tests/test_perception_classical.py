@@ -1,0 +1,169 @@
+"""Classical perception back ends: partition masks, scale awareness, descriptors, batching, device/dtype."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from pydantic import ValidationError
+
+from meridian_torch.perception.classical import (
+    ClassicalSegmenter,
+    ColourTextureDescriber,
+    ColourTextureGlobalDescriber,
+    PixelFeatures,
+    masked_mean,
+)
+from meridian_torch.perception.config import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
+from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
+from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
+
+SCENE_M = 48.0
+# (centre x m, centre y m, radius m, RGB): a tree-green, a car-red, a roof-brown and a pond-blue disc.
+DISCS = [
+    (12.0, 12.0, 4.0, (0.15, 0.38, 0.12)),
+    (34.0, 14.0, 3.0, (0.70, 0.12, 0.10)),
+    (14.0, 34.0, 5.0, (0.55, 0.35, 0.30)),
+    (35.0, 35.0, 4.0, (0.10, 0.20, 0.45)),
+]
+BACKGROUND = ((0.35, 0.52, 0.22), (0.32, 0.32, 0.34))  # grass left, asphalt right
+
+
+def scene(meters_per_pixel: float, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(3, H, W) image of the disc scene at the given resolution, and (K, H, W) disc masks."""
+    n = round(SCENE_M / meters_per_pixel)
+    c = (torch.arange(n, dtype=torch.float64) + 0.5) * meters_per_pixel
+    y, x = torch.meshgrid(c, c, indexing="ij")
+    img = torch.empty(3, n, n, dtype=torch.float64)
+    left = x < SCENE_M / 2
+    for ch in range(3):
+        img[ch] = torch.where(left, BACKGROUND[0][ch], BACKGROUND[1][ch])
+    discs = []
+    for cx, cy, r, rgb in DISCS:
+        m = (x - cx) ** 2 + (y - cy) ** 2 <= r**2
+        img[:, m] = torch.tensor(rgb, dtype=torch.float64)[:, None]
+        discs.append(m)
+    gen = torch.Generator().manual_seed(seed)
+    img = img + 0.015 * torch.randn(img.shape, generator=gen, dtype=torch.float64)
+    return img.clamp(0, 1).float(), torch.stack(discs)
+
+
+def iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(K, H, W) x (M, H, W) bool -> (K, M) IoU."""
+    a, b = a.flatten(1).float(), b.flatten(1).float()
+    inter = a @ b.T
+    return inter / (a.sum(1)[:, None] + b.sum(1)[None] - inter)
+
+
+@pytest.fixture(scope="module")
+def segmenter() -> ClassicalSegmenter:
+    return ClassicalSegmenter()
+
+
+@pytest.mark.parametrize("meters_per_pixel", [0.15, 0.4])
+def test_one_segment_per_disc_at_two_scales(segmenter: ClassicalSegmenter, meters_per_pixel: float) -> None:
+    img, discs = scene(meters_per_pixel)
+    seg = segmenter.segment(img[None], meters_per_pixel)
+    masks = seg.masks[0, seg.valid[0]]
+    assert iou(discs, masks).max(dim=1).values.min() > 0.8
+    # Both background halves survive as segments too (a sparse scene gives few segments).
+    assert 6 <= len(masks) <= 10
+
+
+def test_masks_partition_the_image(segmenter: ClassicalSegmenter) -> None:
+    img, _ = scene(0.3)
+    seg = segmenter.segment(img[None], 0.3)
+    assert seg.masks.dtype == torch.bool and seg.valid.dtype == torch.bool
+    assert seg.masks.shape[-2:] == img.shape[-2:]
+    cover = seg.masks[0].sum(0)
+    assert torch.equal(cover, torch.ones_like(cover))  # no overlap, nothing left out
+    assert not seg.masks[0, ~seg.valid[0]].any()
+    assert ((seg.scores >= 0) & (seg.scores <= 1)).all()
+
+
+def test_ground_frame_without_scale(segmenter: ClassicalSegmenter) -> None:
+    img, _ = scene(0.3)
+    frame = torch.nn.functional.interpolate(img[None], size=(90, 160), mode="bilinear", align_corners=False)
+    seg = segmenter.segment(frame, None)
+    assert seg.masks.shape[-2:] == (90, 160)
+    assert torch.equal(seg.masks[0].sum(0), torch.ones(90, 160, dtype=torch.long))
+    assert int(seg.valid.sum()) >= 4
+
+
+def test_batch_equals_single_images(segmenter: ClassicalSegmenter) -> None:
+    imgs = torch.stack([scene(0.5, seed=s)[0] for s in range(3)])
+    imgs[1] = imgs[1].flip(-1)  # a different layout, so segment counts differ across the batch
+    seg = segmenter.segment(imgs, 0.5)
+    describer = ColourTextureDescriber(PixelFeatures())
+    desc = describer.describe(imgs, seg.masks, seg.valid)
+    for i in range(3):
+        one = segmenter.segment(imgs[i : i + 1], 0.5)
+        m = int(one.valid.sum())
+        assert torch.equal(seg.valid[i], torch.arange(seg.valid.shape[1]) < m)
+        assert torch.equal(seg.masks[i, :m], one.masks[0])
+        assert torch.equal(seg.scores[i, :m], one.scores[0])
+        single = describer.describe(imgs[i : i + 1], one.masks, one.valid)[0]
+        torch.testing.assert_close(desc[i, :m], single, atol=1e-5, rtol=1e-5)
+        assert not desc[i, m:].any()
+
+
+def test_masked_mean_equals_loop() -> None:
+    gen = torch.Generator().manual_seed(0)
+    feats = torch.rand(2, 5, 12, 16, generator=gen, dtype=torch.float64)
+    masks = torch.rand(2, 4, 12, 16, generator=gen) > 0.6
+    masks[1, 3] = False  # an empty mask pools to zeros
+    mean, area = masked_mean(feats, masks)
+    for b in range(2):
+        for m in range(4):
+            sel = feats[b][:, masks[b, m]]
+            expected = sel.mean(dim=1) if sel.shape[1] else torch.zeros(5, dtype=torch.float64)
+            torch.testing.assert_close(mean[b, m], expected)
+            assert area[b, m] == masks[b, m].sum()
+
+
+def test_descriptors_unit_norm_and_colour_similarity(segmenter: ClassicalSegmenter) -> None:
+    img, discs = scene(0.3)
+    # Two dark-green discs of different brightness (sunlit vs shaded canopy), one red, one grey.
+    x = img.clone()
+    x[:, discs[1]] = x[:, discs[0]].mean(dim=1, keepdim=True) * 1.6  # same chromaticity, brighter
+    masks = torch.stack([discs[0], discs[1], discs[2], torch.zeros_like(discs[0])])[None]
+    valid = torch.tensor([[True, True, True, True]])
+    masks[0, 2] = (x[1] < 0.34) & (x[0] < 0.34) & ~discs.any(0) & (torch.arange(x.shape[-1]) >= x.shape[-1] // 2)
+    describer = ColourTextureDescriber(PixelFeatures())
+    d = describer.describe(x[None], masks, valid)[0]
+    assert d.shape == (4, describer.dim)
+    torch.testing.assert_close(d[:3].norm(dim=1), torch.ones(3))
+    assert not d[3].any()  # empty mask -> zeros
+    same = d[0] @ d[1]
+    assert same > 0.9
+    assert same > d[0] @ d[2] + 0.3
+
+
+def test_global_descriptor_and_factories() -> None:
+    seg = build_segmenter(SegmenterConfig())
+    desc = build_segment_describer(DescriptorConfig())
+    glob = build_global_describer(GlobalDescriptorConfig(pyramid_levels=2))
+    assert isinstance(seg, Segmenter) and isinstance(desc, SegmentDescriber) and isinstance(glob, GlobalDescriber)
+    imgs = torch.stack([scene(0.4, seed=s)[0] for s in range(2)])
+    g = glob.describe(imgs)
+    assert g.shape == (2, glob.dim) and glob.dim == 5 * desc.dim
+    torch.testing.assert_close(g.norm(dim=1), torch.ones(2))
+    assert g[0] @ g[1] > 0.95  # same scene, different noise
+    with pytest.raises(ValidationError):
+        SegmenterConfig.model_validate({"backend": "classical", "unknown": 1})
+    with pytest.raises(ValueError):
+        seg.segment(torch.rand(1, 4, 8, 8), 0.3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    "device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA"))]
+)
+def test_device_and_dtype_follow_input(segmenter: ClassicalSegmenter, device: str, dtype: torch.dtype) -> None:
+    img = scene(0.5)[0].to(device, dtype)[None]
+    seg = segmenter.segment(img, 0.5)
+    assert seg.masks.device == img.device and seg.valid.device == img.device
+    assert seg.scores.dtype == dtype and seg.scores.device == img.device
+    d = ColourTextureDescriber(PixelFeatures()).describe(img, seg.masks, seg.valid)
+    g = ColourTextureGlobalDescriber(PixelFeatures()).describe(img)
+    assert d.dtype == dtype and d.device == img.device
+    assert g.dtype == dtype and g.device == img.device
