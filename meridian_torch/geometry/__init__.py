@@ -1,1 +1,1 @@
-"""Rigid-body geometry shared by all stages (numpy, float64)."""
+"""Geometry shared by all stages: SE(3) and trajectories (numpy float64), SE(2) (batched torch)."""
