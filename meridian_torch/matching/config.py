@@ -1,0 +1,130 @@
+"""Validated configuration of the matching stage. Only pydantic is imported here."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from meridian_torch.sim.config import StrictModel
+
+__all__ = ["ClipperConfig"]
+
+
+class ClipperConfig(StrictModel):
+    """Parameters of `solve_clipper`; the defaults are CLIPPER v0.2.4's `clipper::Params`.
+
+    The reference's `tol_Fop` is not offered because the reference never reads it, and
+    `affinityeps` belongs to building the affinity matrix, not to solving it.
+    """
+
+    tol_u: float = Field(default=1e-8, gt=0, description="inner loop stops when ||u+ - u|| < tol_u")
+    tol_F: float = Field(default=1e-9, gt=0, description="... or when |F+ - F| < tol_F")
+    max_inner_iterations: int = Field(
+        default=200, ge=1, description="projected-gradient steps per penalty value d"
+    )
+    max_outer_iterations: int = Field(
+        default=1000, ge=1, description="penalty (d) increases before giving up"
+    )
+    beta: float = Field(default=0.25, gt=0, lt=1, description="backtracking factor of the line search")
+    max_line_search_iterations: int = Field(
+        default=99, ge=1, description="line-search trials per gradient step"
+    )
+    eps: float = Field(
+        default=1e-9,
+        gt=0,
+        description="numerical zero of the line-search test, the support test and the Cb*u test",
+    )
+    rescale_u0: bool = Field(default=True, description="apply one power step (M u0) to the start vector")
+    initial_d: float | None = Field(
+        default=None,
+        ge=0,
+        description="start value of the penalty weight d; None = CLIPPER's data-driven mean of "
+        "(Mu)_i / (Cb u)_i",
+    )
+    diagonal: Literal["identity", "input"] = Field(
+        default="identity",
+        description="'identity' replaces diag(M) by ones (CLIPPER C++); 'input' keeps it as unary "
+        "weights (CLIPPER MATLAB)",
+    )
+    rounding: Literal["clipper", "support", "densest"] = Field(
+        default="clipper",
+        description="'clipper' = round(F) largest entries of u (reference DSD_HEU, loses recall on "
+        "weighted cliques); 'support' = u_i > support_threshold * max(u); 'densest' = exact densest "
+        "subgraph of the support",
+    )
+    support_threshold: float = Field(
+        default=0.0,
+        ge=0,
+        lt=1,
+        description="relative threshold defining the support of u for 'support' and 'densest'; "
+        "0 = CLIPPER's NONZERO",
+    )
+    densest_max_exact: int = Field(
+        default=50,
+        ge=1,
+        description="largest support solved exactly by 'densest' (an LP with ~s^2/2 variables, ~0.2 s "
+        "at s = 50); larger supports fall back to greedy peeling, a 1/2-approximation",
+    )
+    seed: int = Field(
+        default=0, ge=0, description="seed of the random start when neither u0 nor a generator is given"
+    )
+
+
+class AssociationConfig(StrictModel):
+    """Putative associations (`putative_associations`); reference `PrimitiveMatchParams`."""
+
+    k_prim: int = Field(default=20, ge=1, description="K_prim: semantic neighbours taken per primitive")
+    direction: Literal["ground_to_aerial", "union"] = Field(
+        default="ground_to_aerial",
+        description="'ground_to_aerial' = k aerial neighbours per ground primitive (reference knn_direction "
+        "'2to1'); 'union' also adds k ground neighbours per aerial primitive, deduplicated",
+    )
+    min_line_length_m: float = Field(
+        default=2.0, ge=0, description="segments shorter than this are dropped on both sides; rays/infinite kept"
+    )
+
+
+class AffinityConfig(StrictModel):
+    """Scoring of the data-association affinity M_DA (`matching.affinity`).
+
+    Defaults are the reference `PrimitiveMatchParams` (paper values sigma_t = 2 m,
+    sigma_theta = 20 deg with eps = sigma).
+    """
+
+    sigma_t_m: float = Field(default=2.0, gt=0, description="sigma of the distance-difference kernel")
+    epsilon_t_m: float = Field(default=2.0, gt=0, description="distance differences above this score 0")
+    sigma_theta_deg: float = Field(
+        default=20.0, gt=0, lt=90, description="sigma of the angle-difference kernel; tan(sigma) scales lever arms"
+    )
+    epsilon_theta_deg: float = Field(default=20.0, gt=0, description="angle differences above this score 0")
+    min_point_separation_m: float = Field(
+        default=3.0, ge=0, description="point pairs closer than this in either map are never consistent"
+    )
+    min_line_angle_deg: float = Field(
+        default=10.0, ge=0, description="line pairs more parallel than this in either map are never consistent"
+    )
+    cosine_min: float = Field(default=0.1, description="descriptor cosine at or below this kills an association")
+    cosine_max: float = Field(default=0.5, description="cosine at or above this gives the full unary score 1")
+    rotation_uncertainty_deg: float = Field(
+        default=20.0, ge=0, lt=90, description="remaining heading uncertainty of a rotation prior"
+    )
+    lever_arm_inflation: bool = Field(
+        default=True, description="inflate sigma_t by tan(sigma_theta) * lever arm for points derived from lines"
+    )
+    affinity_eps: float = Field(default=1e-4, ge=0, description="affinities at or below this are set to 0")
+    dense_max_m: int = Field(
+        default=1500,
+        ge=1,
+        description="`affinity` returns a dense (P, m, m) tensor up to this m, sparse COO above (measured on CPU)",
+    )
+    block_pairs: int = Field(
+        default=1 << 20, ge=1, description="association pairs scored per row block (bounds peak memory)"
+    )
+
+    def model_post_init(self, context: object, /) -> None:
+        if self.cosine_max <= self.cosine_min:
+            raise ValueError(f"cosine_max ({self.cosine_max}) must exceed cosine_min ({self.cosine_min})")
+
+
+__all__ += ["AssociationConfig", "AffinityConfig"]
