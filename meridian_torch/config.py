@@ -16,10 +16,13 @@ import yaml
 from pydantic import Field, ValidationError
 
 from meridian_torch.errors import ConfigError
+from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.perception.config import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
 from meridian_torch.sim.config import SimConfig, StrictModel
 
 __all__ = [
     "RuntimeConfig",
+    "PerceptionConfig",
     "AerialMapConfig",
     "GroundMapConfig",
     "MatchingConfig",
@@ -42,9 +45,23 @@ class RuntimeConfig(StrictModel):
     num_threads: int = Field(default=0, ge=0, description="torch CPU threads; 0 = torch's default")
 
 
+class PerceptionConfig(StrictModel):
+    """Back ends of segmentation and description; aerial and ground share the describers so
+    that their descriptors are comparable."""
+
+    aerial_segmenter: SegmenterConfig = SegmenterConfig()
+    ground_segmenter: SegmenterConfig = SegmenterConfig()
+    descriptor: DescriptorConfig = DescriptorConfig()
+    global_descriptor: GlobalDescriptorConfig = GlobalDescriptorConfig()
+
+
 class AerialMapConfig(StrictModel):
     patch_size_m: float = Field(default=60.0, gt=0)
     patch_overlap: float = Field(default=0.5, ge=0, lt=1, description="50 % overlap = 30 m stride")
+    segmentation_crop_m: float | None = Field(
+        default=None, gt=0, description="segment each patch in square sub-crops of this size (None: whole patch)"
+    )
+    batch_size: int = Field(default=4, ge=1, description="patches segmented together")
 
 
 class GroundMapConfig(StrictModel):
@@ -83,6 +100,8 @@ class EvaluationConfig(StrictModel):
 class MeridianConfig(StrictModel):
     runtime: RuntimeConfig = RuntimeConfig()
     sim: SimConfig = SimConfig()
+    perception: PerceptionConfig = PerceptionConfig()
+    primitives: PrimitiveConfig = PrimitiveConfig()
     aerial_map: AerialMapConfig = AerialMapConfig()
     ground_map: GroundMapConfig = GroundMapConfig()
     matching: MatchingConfig = MatchingConfig()

@@ -1,0 +1,201 @@
+"""Building the aerial map: orthophoto -> patches -> segments -> point/line primitives + descriptors.
+
+Resumable: every finished patch is stored in a work folder next to the output (one small file
+per patch, keyed by the orthophoto's and the config's hashes), so an interrupted build continues
+where it stopped; the folder is removed once the map file is written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from meridian_torch import __version__
+from meridian_torch.config import AerialMapConfig, PerceptionConfig
+from meridian_torch.io.atomic import atomic_path, write_text_atomic
+from meridian_torch.io.map_file import AerialMap, save_aerial_map
+from meridian_torch.io.ortho import Orthophoto
+from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
+from meridian_torch.mapping.tiling import PatchGrid, crop_offsets, tile_image
+from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
+from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
+from meridian_torch.types import PrimitiveSet, stack_primitive_sets
+
+__all__ = ["AerialMapper", "build_aerial_map", "map_config_dict"]
+
+
+def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig) -> dict[str, Any]:
+    """The config blocks that shape an aerial map (stored in the map file and compared on load)."""
+    return {
+        "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size"}),
+        "perception": {
+            "aerial_segmenter": perception.aerial_segmenter.model_dump(mode="json"),
+            "descriptor": perception.descriptor.model_dump(mode="json"),
+            "global_descriptor": perception.global_descriptor.model_dump(mode="json"),
+        },
+        "primitives": primitives.model_dump(mode="json"),
+    }
+
+
+@dataclass
+class AerialMapper:
+    """The perception back ends and settings of one aerial-map build."""
+
+    segmenter: Segmenter
+    describer: SegmentDescriber
+    global_describer: GlobalDescriber
+    aerial: AerialMapConfig
+    primitives: PrimitiveConfig
+    config: dict[str, Any]
+    device: torch.device = torch.device("cpu")
+
+    @classmethod
+    def from_config(
+        cls, aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig,
+        device: torch.device | str = "cpu",
+    ) -> "AerialMapper":
+        return cls(
+            segmenter=build_segmenter(perception.aerial_segmenter),
+            describer=build_segment_describer(perception.descriptor),
+            global_describer=build_global_describer(perception.global_descriptor),
+            aerial=aerial,
+            primitives=primitives,
+            config=map_config_dict(aerial, perception, primitives),
+            device=torch.device(device),
+        )
+
+    def describe_patches(self, ortho: Orthophoto, grid: PatchGrid, indices: np.ndarray) -> list[tuple[PrimitiveSet, torch.Tensor]]:
+        """Primitives and global descriptor of the patches `indices` (one batch)."""
+        mpp = ortho.meters_per_pixel
+        boxes = grid.pixel_boxes[indices]
+        patches = _to_tensor([ortho.image[r0:r1, c0:c1] for c0, r0, c1, r1 in boxes], self.device)
+        global_desc = self.global_describer.describe(patches)
+
+        # Segmentation crops: the whole patch, or sub-crops (as the reference, for large patches).
+        crop_px = patches.shape[-1] if self.aerial.segmentation_crop_m is None else max(
+            1, int(round(self.aerial.segmentation_crop_m / mpp)))
+        offs_c = crop_offsets(patches.shape[-1], crop_px)
+        offs_r = crop_offsets(patches.shape[-2], crop_px)
+        crops, crop_origin_px = [], []
+        for b, (c0, r0, _, _) in enumerate(boxes):
+            for dr in offs_r:
+                for dc in offs_c:
+                    crops.append(patches[b, :, dr : dr + crop_px, dc : dc + crop_px])
+                    crop_origin_px.append((b, c0 + dc, r0 + dr))
+        # One crop per patch covering it whole (the default): the crops are the patches.
+        whole = len(crops) == len(boxes) and all(c.shape == patches.shape[1:] for c in crops)
+        crops_t = patches if whole else torch.stack(crops)
+        seg = self.segmenter.segment(crops_t, mpp)
+        desc = self.describer.describe(crops_t, seg.masks, seg.valid)
+
+        per_patch: list[list[tuple[np.ndarray, torch.Tensor, np.ndarray, np.ndarray]]] = [[] for _ in boxes]
+        for k, (b, col0, row0) in enumerate(crop_origin_px):
+            masks = seg.masks[k][seg.valid[k]]
+            h, w = masks.shape[-2:]
+            # Mask pixel centres in world metres (FORMAT.md pixel-centre convention).
+            x0, y0 = ortho.origin_xy
+            idx_m, rows, cols = torch.nonzero(masks, as_tuple=True)
+            xy = np.stack([
+                x0 + (col0 + cols.cpu().numpy() + 0.5) * mpp,
+                y0 - (row0 + rows.cpu().numpy() + 0.5) * mpp,
+            ], axis=1)
+            counts = torch.bincount(idx_m, minlength=masks.shape[0]).cpu().numpy()
+            points = np.split(xy, np.cumsum(counts)[:-1])
+            box = np.array([x0 + col0 * mpp, x0 + (col0 + w) * mpp, y0 - (row0 + h) * mpp, y0 - row0 * mpp])
+            per_patch[b].append((points, desc[k][seg.valid[k]], counts * mpp * mpp, box))
+
+        results = []
+        for b, crops_of_patch in enumerate(per_patch):
+            points = [p for c in crops_of_patch for p in c[0]]
+            descs = torch.cat([c[1] for c in crops_of_patch])
+            areas = np.concatenate([c[2] for c in crops_of_patch])
+            boxes_per_segment = np.concatenate([np.repeat(c[3][None], len(c[0]), axis=0) for c in crops_of_patch])
+            prims = segments_to_primitives(points, descs, self.primitives, areas_m2=areas, border_box=boxes_per_segment)
+            results.append((prims.to(device="cpu"), global_desc[b].cpu()))
+        return results
+
+
+def _to_tensor(images: list[np.ndarray], device: torch.device) -> torch.Tensor:
+    batch = torch.from_numpy(np.stack(images)).to(device)
+    return batch.permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def _work_key(ortho: Orthophoto, config: dict[str, Any]) -> str:
+    h = hashlib.sha256(json.dumps([__version__, config, ortho.meters_per_pixel, list(ortho.origin_xy)],
+                                  sort_keys=True).encode())
+    h.update(np.ascontiguousarray(ortho.image).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _save_patch(path: Path, prims: PrimitiveSet, global_desc: torch.Tensor) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, global_desc=global_desc.numpy(), **{k: v.numpy() for k, v in vars(prims).items()})
+
+
+def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor]:
+    with np.load(path) as npz:
+        arrays = {k: torch.from_numpy(npz[k]) for k in npz.files}
+    global_desc = arrays.pop("global_desc")
+    return PrimitiveSet(**arrays), global_desc
+
+
+def build_aerial_map(
+    ortho: Orthophoto,
+    mapper: AerialMapper,
+    *,
+    work_dir: Path | None = None,
+    source: dict[str, str] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> AerialMap:
+    """Build the aerial map of `ortho`. With `work_dir`, finished patches are kept there and reused."""
+    grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, ortho.origin_xy,
+                      mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
+    results: dict[int, tuple[PrimitiveSet, torch.Tensor]] = {}
+    if work_dir is not None:
+        key = _work_key(ortho, mapper.config)
+        key_file = work_dir / "key.txt"
+        if work_dir.exists() and (not key_file.is_file() or key_file.read_text() != key):
+            shutil.rmtree(work_dir)  # another orthophoto or config: nothing to resume
+        work_dir.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(key_file, key)
+        for path in work_dir.glob("patch_*.npz"):
+            results[int(path.stem.split("_")[1])] = _load_patch(path)
+    todo = np.array([i for i in range(len(grid)) if i not in results], dtype=np.int64)
+    if progress is not None:
+        progress(len(results), len(grid))
+    batch = mapper.aerial.batch_size
+    with torch.inference_mode():
+        for start in range(0, len(todo), batch):
+            indices = todo[start : start + batch]
+            for i, result in zip(indices, mapper.describe_patches(ortho, grid, indices)):
+                results[int(i)] = result
+                if work_dir is not None:
+                    _save_patch(work_dir / f"patch_{int(i):06d}.npz", *result)
+            if progress is not None:
+                progress(len(results), len(grid))
+    ordered = [results[i] for i in range(len(grid))]
+    return AerialMap(
+        patches=grid,
+        primitives=stack_primitive_sets([r[0] for r in ordered]),
+        global_descriptors=torch.stack([r[1] for r in ordered]),
+        meters_per_pixel=ortho.meters_per_pixel,
+        origin_xy=ortho.origin_xy,
+        image_size=ortho.size_px,
+        crs=ortho.crs,
+        config=mapper.config,
+        backends={
+            "segmenter": type(mapper.segmenter).__name__,
+            "describer": type(mapper.describer).__name__,
+            "global_describer": type(mapper.global_describer).__name__,
+        },
+        source=source or {},
+    )
