@@ -1,0 +1,98 @@
+"""Aerial map building on a small simulated orthophoto: batching, resumption, the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from meridian_torch.cli import app
+from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.io.map_file import load_aerial_map
+from meridian_torch.io.ortho import Orthophoto, write_orthophoto
+from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
+from meridian_torch.sim.ortho_render import render_orthophoto
+from meridian_torch.sim.simulate import build_world
+
+CFG = load_config(CONFIG_DIR / "tiny.yaml")
+
+
+@pytest.fixture(scope="module")
+def ortho() -> Orthophoto:
+    world = build_world(CFG.sim)
+    full = render_orthophoto(world, CFG.sim.ortho, 0)
+    n = int(round(90.0 / full.meters_per_pixel))  # 90 m: a 2 x 2 grid of 60 m patches
+    return Orthophoto(full.image[:n, :n].copy(), full.meters_per_pixel, full.origin_xy)
+
+
+def _mapper(batch_size: int) -> AerialMapper:
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", [f"aerial_map.batch_size={batch_size}"])
+    return AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives)
+
+
+def _assert_same(a, b) -> None:
+    for name in ("points_xy", "point_valid", "line_endpoints", "line_kinds", "line_valid", "line_descriptors"):
+        assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
+    assert torch.allclose(a.global_descriptors, b.global_descriptors)
+
+
+@pytest.fixture(scope="module")
+def reference_map(ortho: Orthophoto):
+    return build_aerial_map(ortho, _mapper(4))
+
+
+def test_map_has_primitives_inside_their_patches(reference_map) -> None:
+    prims = reference_map.primitives
+    assert len(reference_map) == 4
+    assert int(prims.point_valid.sum()) > 0 and int(prims.line_valid.sum()) > 0
+    bounds = torch.from_numpy(reference_map.patches.bounds_xy).float()
+    x, y = prims.points_xy[..., 0], prims.points_xy[..., 1]
+    inside = (x >= bounds[:, None, 0]) & (x <= bounds[:, None, 1]) & (y >= bounds[:, None, 2]) & (y <= bounds[:, None, 3])
+    assert bool(inside[prims.point_valid].all()), "points lie in their patch (world frame, not image frame)"
+    norms = prims.line_descriptors[prims.line_valid].norm(dim=1)
+    assert torch.allclose(norms, torch.ones_like(norms), atol=1e-4)
+
+
+def test_batched_equals_one_patch_at_a_time(ortho: Orthophoto, reference_map) -> None:
+    _assert_same(build_aerial_map(ortho, _mapper(1)), reference_map)
+
+
+def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: Path) -> None:
+    work = tmp_path / "parts"
+    calls = []
+
+    def interrupt(done: int, total: int) -> None:
+        calls.append(done)
+        if done >= 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_aerial_map(ortho, _mapper(1), work_dir=work, progress=interrupt)
+    assert len(list(work.glob("patch_*.npz"))) == 2
+    progress = []
+    resumed = build_aerial_map(ortho, _mapper(1), work_dir=work, progress=lambda d, t: progress.append(d))
+    assert progress[0] == 2, "the two finished patches were reused"
+    _assert_same(resumed, reference_map)
+
+
+def test_build_and_show_map_cli(ortho: Orthophoto, tmp_path: Path) -> None:
+    write_orthophoto(tmp_path / "aerial", ortho)
+    out = tmp_path / "map.mtm"
+    runner = CliRunner()
+    result = runner.invoke(app, ["build-map", str(tmp_path / "aerial"), "--out", str(out), "-c", str(CONFIG_DIR / "tiny.yaml")])
+    assert result.exit_code == 0, result.output
+    assert out.is_file() and not (tmp_path / "map.mtm.parts").exists()
+    loaded = load_aerial_map(out)
+    assert loaded.image_size == ortho.size_px and len(loaded) == 4
+    result = runner.invoke(app, ["show-map", str(out), "--out", str(tmp_path / "map.png")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "map.png").stat().st_size > 10_000
+
+
+def test_missing_orthophoto_is_a_clear_error(tmp_path: Path) -> None:
+    result = CliRunner().invoke(app, ["build-map", str(tmp_path / "nothing"), "--out", str(tmp_path / "m.mtm")])
+    assert result.exit_code == 1
+    assert "nothing" in result.output and "Traceback" not in result.output
