@@ -116,7 +116,10 @@ class AffinityConfig(StrictModel):
     dense_max_m: int = Field(
         default=1500,
         ge=1,
-        description="`affinity` returns a dense (P, m, m) tensor up to this m, sparse COO above (measured on CPU)",
+        description="`affinity` returns a dense (P, m, m) tensor up to this m, sparse COO above. Measured on "
+        "a 2-core CPU, 25 patches, ~4.5 % non-zeros: build time is equal; a (P, m, m) x (P, m, 32) bmm is "
+        "faster dense up to m ~ 1000 (55 vs 63 ms) and equal at 1500 (174 vs 170 ms), while dense memory "
+        "is 3.6x larger (225 vs 62 MB at m = 1500, 400 vs 120 MB at m = 2000)",
     )
     block_pairs: int = Field(
         default=1 << 20, ge=1, description="association pairs scored per row block (bounds peak memory)"

@@ -1,0 +1,188 @@
+"""Putative associations between one ground submap and P aerial patches (K_prim semantic neighbours).
+
+Points are only ever associated with points and lines with lines. Every association is a pair
+(ground index, aerial index) in a *unified per-side index space*: points come first, then lines.
+
+- ground side: index `g < n_ground_points` is `ground.points_xy[g]`, otherwise it is
+  `ground.line_endpoints[g - n_ground_points]`;
+- aerial side: index `a < n_aerial_points` is `aerial.points_xy[p, a]`, otherwise it is
+  `aerial.line_endpoints[p, a - n_aerial_points]`, where `n_aerial_points` is the *padded*
+  point width of the batch (the same for every patch).
+
+The association axis is laid out in two blocks shared by all patches: columns
+`[0, n_point_assoc)` are point associations and `[n_point_assoc, m)` line associations. Inside
+each block a patch's valid associations come first, sorted by (ground index, aerial index);
+padding entries are invalid, carry the index -1 and cosine 0. The fixed block layout lets the
+affinity evaluate each primitive-type combination only on its own sub-matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+
+from meridian_torch.types import LineKind, PrimitiveBatch, PrimitiveSet
+
+__all__ = ["Associations", "putative_associations", "line_keep_mask"]
+
+Direction = Literal["ground_to_aerial", "union"]
+
+
+@dataclass(frozen=True)
+class Associations:
+    """Putative associations of one ground submap against P aerial patches.
+
+    Attributes:
+        pairs: (P, m, 2) int64, (ground index, aerial index) in the unified index spaces
+            (points first, then lines; see the module docstring); -1 where invalid.
+        is_line: (P, m) bool, True for line-line associations (columns >= n_point_assoc).
+        valid: (P, m) bool, False for padding.
+        cosine: (P, m) cosine similarity of the two descriptors (0 where invalid).
+        n_point_assoc: width of the point block of the association axis.
+        n_ground_points: number of ground points (offset of ground line indices).
+        n_aerial_points: padded number of aerial points (offset of aerial line indices).
+    """
+
+    pairs: torch.Tensor
+    is_line: torch.Tensor
+    valid: torch.Tensor
+    cosine: torch.Tensor
+    n_point_assoc: int
+    n_ground_points: int
+    n_aerial_points: int
+
+    def __post_init__(self) -> None:
+        n_patches, m = self.valid.shape
+        if tuple(self.pairs.shape) != (n_patches, m, 2):
+            raise ValueError(f"Associations.pairs: expected shape {(n_patches, m, 2)}, got {tuple(self.pairs.shape)}")
+        for name in ("is_line", "cosine"):
+            if tuple(getattr(self, name).shape) != (n_patches, m):
+                raise ValueError(f"Associations.{name}: expected shape {(n_patches, m)}, got {tuple(getattr(self, name).shape)}")
+        if not 0 <= self.n_point_assoc <= m:
+            raise ValueError(f"Associations.n_point_assoc must lie in [0, {m}], got {self.n_point_assoc}")
+
+    @property
+    def num_patches(self) -> int:
+        return int(self.valid.shape[0])
+
+    @property
+    def size(self) -> int:
+        """m, the length of the association axis (padding included)."""
+        return int(self.valid.shape[1])
+
+
+def line_keep_mask(endpoints: torch.Tensor, kinds: torch.Tensor, min_length_m: float) -> torch.Tensor:
+    """Lines usable for matching: segments at least `min_length_m` long; rays and infinite lines
+    are kept whatever their length, unless their two defining points coincide (no direction).
+
+    Shapes: endpoints (..., 2, 2), kinds (...) -> (...) bool.
+    """
+    length = (endpoints[..., 1, :] - endpoints[..., 0, :]).norm(dim=-1)
+    long_enough = torch.where(kinds == int(LineKind.SEGMENT), length >= min_length_m, torch.ones_like(length, dtype=torch.bool))
+    return long_enough & (length > 0)
+
+
+def _type_pairs(
+    ground_desc: torch.Tensor,
+    ground_ok: torch.Tensor,
+    aerial_desc: torch.Tensor,
+    aerial_ok: torch.Tensor,
+    k: int,
+    direction: Direction,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """K-NN pairs of one primitive type for all patches at once.
+
+    Shapes: ground_desc (G, D), ground_ok (G,), aerial_desc (P, A, D), aerial_ok (P, A) ->
+    pairs (P, mt, 2) local indices (-1 in padding), valid (P, mt), cosine (P, mt).
+    """
+    n_patches, n_aerial = aerial_ok.shape
+    n_ground = ground_ok.shape[0]
+    cosine = torch.einsum("gd,pad->pga", F.normalize(ground_desc, dim=-1), F.normalize(aerial_desc, dim=-1))
+    usable = ground_ok[None, :, None] & aerial_ok[:, None, :]
+    ranked = cosine.masked_fill(~usable, float("-inf"))
+    # k is clipped to the size of the other side; picks that land on masked entries are dropped below.
+    selected = torch.zeros_like(usable)
+    k_aerial = min(k, n_aerial)
+    if k_aerial > 0:
+        selected.scatter_(2, ranked.topk(k_aerial, dim=2).indices, True)
+    k_ground = min(k, n_ground)
+    if direction == "union" and k_ground > 0:
+        selected.scatter_(1, ranked.topk(k_ground, dim=1).indices, True)
+    selected &= usable
+
+    flat = selected.reshape(n_patches, n_ground * n_aerial)
+    counts = flat.sum(dim=1)
+    width = int(counts.max()) if flat.numel() > 0 else 0
+    # A stable descending sort of the flags puts each patch's selected pairs first, in ascending
+    # flat (= ground-major) order, so no per-patch nonzero() is needed.
+    order = torch.sort(flat.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :width]
+    valid = torch.arange(width, device=flat.device)[None, :] < counts[:, None]
+    pairs = torch.stack([order // max(n_aerial, 1), order % max(n_aerial, 1)], dim=-1)
+    pairs = pairs.masked_fill(~valid[..., None], -1)
+    cos = cosine.reshape(n_patches, -1).gather(1, order).masked_fill(~valid, 0.0)
+    return pairs, valid, cos
+
+
+def putative_associations(
+    ground: PrimitiveSet,
+    aerial: PrimitiveBatch,
+    *,
+    k_prim: int = 20,
+    direction: Direction = "ground_to_aerial",
+    min_line_length_m: float = 2.0,
+) -> Associations:
+    """Semantic K-NN associations of one ground submap against every patch of `aerial`.
+
+    "ground_to_aerial": for every ground primitive its `k_prim` most cosine-similar aerial
+    primitives of the same type (the paper's K_prim). "union": additionally, for every aerial
+    primitive its `k_prim` most similar ground primitives; duplicates are merged. Finite lines
+    (segments) shorter than `min_line_length_m` take part on neither side.
+
+    Args:
+        ground: the ground submap (Ng points, Ngl lines, descriptors of dimension D).
+        aerial: P padded aerial patches (Na points, Nal lines, same D).
+        k_prim: neighbours per primitive (clipped to the number of candidates).
+        direction: "ground_to_aerial" or "union".
+        min_line_length_m: minimum segment length.
+
+    Returns:
+        Associations with pairs (P, m, 2), m = n_point_assoc + line block width.
+    """
+    if k_prim < 1:
+        raise ValueError(f"k_prim must be >= 1, got {k_prim}")
+    if direction not in ("ground_to_aerial", "union"):
+        raise ValueError(f"direction must be 'ground_to_aerial' or 'union', got {direction!r}")
+    device, dtype = aerial.points_xy.device, aerial.points_xy.dtype
+    ground = ground.to(device=device, dtype=dtype)
+
+    n_ground_points = int(ground.points_xy.shape[0])
+    n_aerial_points = int(aerial.points_xy.shape[1])
+    ground_point_ok = torch.ones(n_ground_points, dtype=torch.bool, device=device)
+    ground_line_ok = line_keep_mask(ground.line_endpoints, ground.line_kinds, min_line_length_m)
+    aerial_line_ok = aerial.line_valid & line_keep_mask(aerial.line_endpoints, aerial.line_kinds, min_line_length_m)
+
+    pt_pairs, pt_valid, pt_cos = _type_pairs(
+        ground.point_descriptors, ground_point_ok, aerial.point_descriptors, aerial.point_valid, k_prim, direction
+    )
+    ln_pairs, ln_valid, ln_cos = _type_pairs(
+        ground.line_descriptors, ground_line_ok, aerial.line_descriptors, aerial_line_ok, k_prim, direction
+    )
+    offsets = torch.tensor([n_ground_points, n_aerial_points], device=device)
+    ln_pairs = torch.where(ln_valid[..., None], ln_pairs + offsets, ln_pairs)
+
+    n_point_assoc = int(pt_pairs.shape[1])
+    valid = torch.cat([pt_valid, ln_valid], dim=1)
+    is_line = torch.zeros_like(valid)
+    is_line[:, n_point_assoc:] = True
+    return Associations(
+        pairs=torch.cat([pt_pairs, ln_pairs], dim=1),
+        is_line=is_line,
+        valid=valid,
+        cosine=torch.cat([pt_cos, ln_cos], dim=1),
+        n_point_assoc=n_point_assoc,
+        n_ground_points=n_ground_points,
+        n_aerial_points=n_aerial_points,
+    )

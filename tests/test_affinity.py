@@ -1,0 +1,542 @@
+"""Affinity M_DA: batched scores equal a plain per-pair loop; closed-form cases for every score."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meridian_torch.matching.affinity import (
+    affinity,
+    affinity_matrix,
+    affinity_matrix_sparse,
+    closest_points_between_lines,
+    kernel,
+    nearest_point_on_line,
+    unary_scores,
+)
+from meridian_torch.matching.associations import Associations, putative_associations
+from meridian_torch.matching.config import AffinityConfig
+from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
+
+SEG, RAY, INF = int(LineKind.SEGMENT), int(LineKind.RAY), int(LineKind.INFINITE)
+CFG = AffinityConfig()
+TAN = math.tan(math.radians(20.0))
+
+# ------------------------------------------------------------------------------------------
+# Slow reference: the fact sheet's rules, one pair at a time, in plain Python floats.
+# ------------------------------------------------------------------------------------------
+
+
+def sub(u, v):
+    return (u[0] - v[0], u[1] - v[1])
+
+
+def dot(u, v):
+    return u[0] * v[0] + u[1] * v[1]
+
+
+def crs(u, v):
+    return u[0] * v[1] - u[1] * v[0]
+
+
+def make_line(e, kind):
+    d = sub(e[1], e[0])
+    length = math.hypot(*d)
+    d = (d[0] / length, d[1] / length)
+    ref = e[0] if kind == RAY else ((e[0][0] + e[1][0]) / 2, (e[0][1] + e[1][1]) / 2)
+    ends = [e[0], e[1]] if kind == SEG else ([e[0]] if kind == RAY else [])
+    lo = -math.inf if kind == INF else 0.0
+    hi = length if kind == SEG else math.inf
+    return {"o": e[0], "d": d, "lo": lo, "hi": hi, "ref": ref, "ends": ends, "inf": kind == INF}
+
+
+def ref_nearest(x, ln):
+    t = min(max(dot(sub(x, ln["o"]), ln["d"]), ln["lo"]), ln["hi"])
+    return (ln["o"][0] + t * ln["d"][0], ln["o"][1] + t * ln["d"][1])
+
+
+def ref_on_line(x, ln):
+    t = dot(sub(x, ln["o"]), ln["d"])
+    return ln["lo"] - 1e-3 <= t <= ln["hi"] + 1e-3
+
+
+def ref_closest(l1, l2):
+    if abs(dot(l1["d"], l2["d"])) >= math.cos(math.radians(0.1)):
+        if l1["inf"]:
+            return l1["ref"], ref_nearest(l1["ref"], l2)
+        if l2["inf"]:
+            return ref_nearest(l2["ref"], l1), l2["ref"]
+    else:
+        w = sub(l2["o"], l1["o"])
+        t1 = crs(w, l2["d"]) / crs(l1["d"], l2["d"])
+        x = (l1["o"][0] + t1 * l1["d"][0], l1["o"][1] + t1 * l1["d"][1])
+        if ref_on_line(x, l1) and ref_on_line(x, l2):
+            return x, x
+    best, best_d = None, math.inf
+    for e in l1["ends"]:
+        n = ref_nearest(e, l2)
+        if math.dist(e, n) < best_d:
+            best, best_d = (e, n), math.dist(e, n)
+    for e in l2["ends"]:
+        n = ref_nearest(e, l1)
+        if math.dist(e, n) < best_d:
+            best, best_d = (n, e), math.dist(e, n)
+    return best
+
+
+def f(c, sigma, eps):
+    return math.exp(-c * c / (2 * sigma * sigma)) if c <= eps else 0.0
+
+
+def ref_point_pair(da, dg, delta, rotated, min_sep):
+    l1, l2 = math.hypot(*da), math.hypot(*dg)
+    if min_sep and (l1 < 3.0 or l2 < 3.0):
+        return 0.0
+    e0 = f(abs(l1 - l2), 2.0 + delta, 2.0)
+    if not rotated:
+        return e0
+    s = math.sin(math.radians(20.0))
+    cx, cy = abs(da[0] - dg[0]), abs(da[1] - dg[1])
+    wx, wy = 0.5 * (abs(da[0]) + abs(dg[0])) * s, 0.5 * (abs(da[1]) + abs(dg[1])) * s
+    sx, sy, ex, ey = 2.0 + delta + wx, 2.0 + delta + wy, 2.0 + delta + wx, 2.0 + delta + wy
+    if cx > ex / math.sqrt(2) or cy > ey / math.sqrt(2):
+        return 0.0
+    return min(e0, math.exp(-0.5 * (cx**2 / (sx**2 / 2) + cy**2 / (sy**2 / 2))))
+
+
+def angle(d1, d2):
+    return math.acos(min(1.0, abs(dot(d1, d2))))
+
+
+def ref_line_line(ai, aj, gi, gj, rotated):
+    ta, tg = angle(ai["d"], aj["d"]), angle(gi["d"], gj["d"])
+    if ta < math.radians(10) or tg < math.radians(10):
+        return 0.0
+    s_theta = f(abs(ta - tg), math.radians(20), math.radians(20))
+    if s_theta == 0:
+        return 0.0
+    cai, caj = ref_closest(ai, aj)
+    cgi, cgj = ref_closest(gi, gj)
+    lever = (math.dist(ai["ref"], cai) + math.dist(aj["ref"], caj) + math.dist(gi["ref"], cgi) + math.dist(gj["ref"], cgj)) / 4
+    s_t = ref_point_pair(sub(cai, caj), sub(cgi, cgj), TAN * lever, rotated, False)
+    return math.sqrt(s_theta * s_t)
+
+
+def ref_point_line(pa, pg, la, lg, rotated):
+    na, ng = ref_nearest(pa, la), ref_nearest(pg, lg)
+    delta = TAN * 0.5 * (math.dist(la["ref"], na) + math.dist(lg["ref"], ng))
+    va, vg = sub(pa, na), sub(pg, ng)
+    c_along = abs(abs(dot(va, la["d"])) - abs(dot(vg, lg["d"])))
+    c_across = abs(abs(crs(va, la["d"])) - abs(crs(vg, lg["d"])))
+    r2 = math.sqrt(2)
+    split = f(c_along, 2.0 / r2, 2.0 / r2) * f(c_across, 2.0 / r2 + delta, 2.0 / r2 + delta)
+    return min(split, ref_point_pair(va, vg, delta, rotated, False))
+
+
+def rot(yaw, x):
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (c * x[0] - s * x[1], s * x[0] + c * x[1])
+
+
+def primitive(s: PrimitiveSet, index: int, n_points: int, yaw: float | None):
+    """('point', xy) or ('line', line dict) for a unified index, rotated by yaw if given."""
+    r = (lambda x: rot(yaw, x)) if yaw is not None else (lambda x: x)
+    if index < n_points:
+        return "point", r(tuple(s.points_xy[index].tolist()))
+    e = [r(tuple(p)) for p in s.line_endpoints[index - n_points].tolist()]
+    return "line", make_line(e, int(s.line_kinds[index - n_points]))
+
+
+def loop_affinity(ground, patches, assoc: Associations, prior: list[float] | None) -> torch.Tensor:
+    m = assoc.size
+    out = torch.zeros(len(patches), m, m, dtype=torch.float64)
+    for p, patch in enumerate(patches):
+        yaw = None if prior is None else prior[p]
+        n_ap = assoc.n_aerial_points
+        # A batch pads points, the unbatched patch does not: map the unified aerial index back.
+        n_real = patch.points_xy.shape[0]
+        items = []
+        for i in range(m):
+            if not bool(assoc.valid[p, i]):
+                items.append(None)
+                continue
+            g, a = assoc.pairs[p, i].tolist()
+            a_local = a if a < n_ap else a - n_ap + n_real
+            kind, gp = primitive(ground, g, assoc.n_ground_points, yaw)
+            _, ap = primitive(patch, a_local, n_real, None)
+            c = float(assoc.cosine[p, i])
+            q = min(max((c - 0.1) / 0.4, 0.0), 1.0)
+            if yaw is not None and kind == "line":
+                q = math.sqrt(f(angle(ap["d"], gp["d"]), math.radians(40), math.radians(40)) * q)
+            items.append((kind, g, a, gp, ap, q))
+        for i in range(m):
+            if items[i] is None:
+                continue
+            out[p, i, i] = 1.0
+            for j in range(i + 1, m):
+                if items[j] is None:
+                    continue
+                ki, gi_idx, ai_idx, gi, ai, qi = items[i]
+                kj, gj_idx, aj_idx, gj, aj, qj = items[j]
+                if gi_idx == gj_idx or ai_idx == aj_idx:
+                    continue
+                rotated = yaw is not None
+                if ki == kj == "point":
+                    s = ref_point_pair(sub(ai, aj), sub(gi, gj), 0.0, rotated, True)
+                elif ki == kj == "line":
+                    s = ref_line_line(ai, aj, gi, gj, rotated)
+                elif ki == "point":
+                    s = ref_point_line(ai, gi, aj, gj, rotated)
+                else:
+                    s = ref_point_line(aj, gj, ai, gi, rotated)
+                v = (s * qi * qj) ** (1 / 3)
+                if v > 1e-4:
+                    out[p, i, j] = out[p, j, i] = v
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# Builders
+# ------------------------------------------------------------------------------------------
+
+
+def make_set(points, lines=(), kinds=(), point_desc=None, line_desc=None, dim: int = 8) -> PrimitiveSet:
+    pts = torch.tensor(points, dtype=torch.float64).reshape(-1, 2)
+    ln = torch.tensor(lines, dtype=torch.float64).reshape(-1, 2, 2)
+    eye = torch.eye(dim, dtype=torch.float64)
+    pd = point_desc if point_desc is not None else eye[torch.arange(pts.shape[0]) % dim]
+    ld = line_desc if line_desc is not None else eye[(torch.arange(ln.shape[0]) + pts.shape[0]) % dim]
+    return PrimitiveSet(
+        points_xy=pts,
+        point_descriptors=pd,
+        point_segment_ids=torch.arange(pts.shape[0]),
+        line_endpoints=ln,
+        line_kinds=torch.tensor(list(kinds), dtype=torch.int64),
+        line_descriptors=ld,
+        line_segment_ids=torch.arange(ln.shape[0]),
+    )
+
+
+def transform(s: PrimitiveSet, yaw: float, t: tuple[float, float], noise: float = 0.0, gen=None) -> PrimitiveSet:
+    c, sn = math.cos(yaw), math.sin(yaw)
+    r = torch.tensor([[c, -sn], [sn, c]], dtype=torch.float64)
+    tt = torch.tensor(t, dtype=torch.float64)
+    jitter = (lambda x: x + noise * torch.randn(x.shape, generator=gen, dtype=torch.float64)) if noise else (lambda x: x)
+    return PrimitiveSet(
+        points_xy=jitter(s.points_xy @ r.T + tt),
+        point_descriptors=s.point_descriptors,
+        point_segment_ids=s.point_segment_ids,
+        line_endpoints=jitter(s.line_endpoints @ r.T + tt),
+        line_kinds=s.line_kinds,
+        line_descriptors=s.line_descriptors,
+        line_segment_ids=s.line_segment_ids,
+    )
+
+
+def identity_assoc(n_points: int, n_lines: int, cosine: float = 1.0) -> Associations:
+    idx = torch.arange(n_points + n_lines)
+    return Associations(
+        pairs=torch.stack([idx, idx], dim=-1)[None],
+        is_line=(idx >= n_points)[None],
+        valid=torch.ones(1, n_points + n_lines, dtype=torch.bool),
+        cosine=torch.full((1, n_points + n_lines), cosine, dtype=torch.float64),
+        n_point_assoc=n_points,
+        n_ground_points=n_points,
+        n_aerial_points=n_points,
+    )
+
+
+def random_scene(gen: torch.Generator, n_points: int, n_lines: int, dim: int = 12) -> PrimitiveSet:
+    e0 = torch.rand(n_lines, 2, generator=gen, dtype=torch.float64) * 40
+    ang = torch.rand(n_lines, generator=gen, dtype=torch.float64) * math.pi
+    length = 3 + 12 * torch.rand(n_lines, generator=gen, dtype=torch.float64)
+    e1 = e0 + length[:, None] * torch.stack([ang.cos(), ang.sin()], 1)
+    desc = lambda n: torch.nn.functional.normalize(torch.randn(n, dim, generator=gen, dtype=torch.float64), dim=1)  # noqa: E731
+    return PrimitiveSet(
+        points_xy=torch.rand(n_points, 2, generator=gen, dtype=torch.float64) * 40,
+        point_descriptors=desc(n_points),
+        point_segment_ids=torch.arange(n_points),
+        line_endpoints=torch.stack([e0, e1], 1),
+        line_kinds=torch.randint(0, 3, (n_lines,), generator=gen),
+        line_descriptors=desc(n_lines),
+        line_segment_ids=torch.arange(n_lines),
+    )
+
+
+def noisy_patch(ground: PrimitiveSet, gen: torch.Generator, n_keep_p: int, n_keep_l: int, n_extra: int) -> PrimitiveSet:
+    """A transformed, jittered subset of the ground set plus random extra primitives, with
+    descriptors close to the ground ones so cosines span the [0.1, 0.5] window."""
+    yaw = float(torch.rand((), generator=gen)) * 2 * math.pi
+    moved = transform(ground, yaw, (100.0, -20.0), noise=0.7, gen=gen)
+    extra = random_scene(gen, n_extra, n_extra, ground.descriptor_dim)
+    extra = transform(extra, 0.0, (100.0, -20.0))
+    mix = lambda d: torch.nn.functional.normalize(d + 1.2 * torch.randn(d.shape, generator=gen, dtype=torch.float64), dim=1)  # noqa: E731
+    return PrimitiveSet(
+        points_xy=torch.cat([moved.points_xy[:n_keep_p], extra.points_xy]),
+        point_descriptors=torch.cat([mix(moved.point_descriptors[:n_keep_p]), extra.point_descriptors]),
+        point_segment_ids=torch.arange(n_keep_p + n_extra),
+        line_endpoints=torch.cat([moved.line_endpoints[:n_keep_l], extra.line_endpoints]),
+        line_kinds=torch.cat([moved.line_kinds[:n_keep_l], extra.line_kinds]),
+        line_descriptors=torch.cat([mix(moved.line_descriptors[:n_keep_l]), extra.line_descriptors]),
+        line_segment_ids=torch.arange(n_keep_l + n_extra),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Batched == loop
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_affinity_equals_loop(seed: int, with_prior: bool) -> None:
+    gen = torch.Generator().manual_seed(seed)
+    ground = random_scene(gen, 9, 9)
+    patches = [noisy_patch(ground, gen, 7, 8, 3), noisy_patch(ground, gen, 4, 3, 2), noisy_patch(ground, gen, 9, 9, 0)]
+    batch = stack_primitive_sets(patches)
+    assoc = putative_associations(ground, batch, k_prim=3)
+    prior = [float(x) for x in torch.rand(3, generator=gen, dtype=torch.float64) * 6] if with_prior else None
+    prior_t = torch.tensor(prior, dtype=torch.float64) if prior is not None else None
+    # Small blocks so that several row blocks, both types and the block seams are exercised.
+    cfg = AffinityConfig(block_pairs=500)
+    dense = affinity_matrix(ground, batch, assoc, cfg, rotation_prior=prior_t)
+    expected = loop_affinity(ground, patches, assoc, prior)
+    assert (expected > 0).sum() > 3 * assoc.size  # the case is not trivially empty
+    torch.testing.assert_close(dense, expected, atol=1e-9, rtol=0)
+    sparse = affinity_matrix_sparse(ground, batch, assoc, cfg, rotation_prior=prior_t)
+    torch.testing.assert_close(sparse.to_dense(), dense, atol=1e-15, rtol=0)
+    # One large block gives the same matrix.
+    torch.testing.assert_close(affinity_matrix(ground, batch, assoc, AffinityConfig(), rotation_prior=prior_t), dense)
+    # Padding rows / columns are zero, including the diagonal.
+    pad = ~assoc.valid
+    assert (dense[pad[:, :, None].expand_as(dense)] == 0).all()
+    assert (dense.diagonal(dim1=1, dim2=2) == assoc.valid.double()).all()
+
+
+def test_closest_points_equal_loop() -> None:
+    gen = torch.Generator().manual_seed(3)
+    n = 400
+    e1 = torch.rand(n, 2, 2, generator=gen, dtype=torch.float64) * 20
+    e2 = torch.rand(n, 2, 2, generator=gen, dtype=torch.float64) * 20
+    # Some exactly parallel pairs, with and without infinite lines.
+    e2[:40] = e1[:40] + torch.tensor([3.0, -1.0], dtype=torch.float64)
+    k1 = torch.randint(0, 3, (n,), generator=gen)
+    k2 = torch.randint(0, 3, (n,), generator=gen)
+    c1, c2 = closest_points_between_lines(e1, k1, e2, k2)
+    for i in range(n):
+        r1, r2 = ref_closest(make_line(e1[i].tolist(), int(k1[i])), make_line(e2[i].tolist(), int(k2[i])))
+        assert torch.linalg.vector_norm(c1[i] - c2[i]).item() == pytest.approx(math.dist(r1, r2), abs=1e-9)
+        if i >= 40:  # parallel segments can tie between equally close endpoint pairs
+            torch.testing.assert_close(c1[i], torch.tensor(r1, dtype=torch.float64), atol=1e-9, rtol=0)
+            torch.testing.assert_close(c2[i], torch.tensor(r2, dtype=torch.float64), atol=1e-9, rtol=0)
+    x = torch.rand(n, 2, generator=gen, dtype=torch.float64) * 20
+    near = nearest_point_on_line(x, e1, k1)
+    for i in range(n):
+        ref = ref_nearest(tuple(x[i].tolist()), make_line(e1[i].tolist(), int(k1[i])))
+        torch.testing.assert_close(near[i], torch.tensor(ref, dtype=torch.float64), atol=1e-12, rtol=0)
+
+
+# ------------------------------------------------------------------------------------------
+# Closed-form cases
+# ------------------------------------------------------------------------------------------
+
+
+def lines_pair(a_lines, g_lines, kinds, cos: float = 1.0) -> float:
+    """M_01 of two line associations (aerial line k <-> ground line k)."""
+    aerial = make_set([], a_lines, kinds)
+    ground = make_set([], g_lines, kinds)
+    m = affinity_matrix(ground, stack_primitive_sets([aerial]), identity_assoc(0, 2, cos), CFG)
+    return float(m[0, 0, 1])
+
+
+def test_kernel_boundary() -> None:
+    c = torch.tensor([0.0, 1.0, 2.0, 2.0000001], dtype=torch.float64)
+    expected = torch.tensor([1.0, math.exp(-1 / 8), math.exp(-0.5), 0.0], dtype=torch.float64)
+    torch.testing.assert_close(kernel(c, 2.0, 2.0), expected)
+
+
+def test_corner_segments_meet_at_the_corner() -> None:
+    e1 = torch.tensor([[0.0, 0.0], [10.0, 0.0]], dtype=torch.float64)
+    e2 = torch.tensor([[0.0, 0.0], [0.0, 10.0]], dtype=torch.float64)
+    c1, c2 = closest_points_between_lines(e1, torch.tensor(SEG), e2, torch.tensor(SEG))
+    assert c1.tolist() == [0.0, 0.0] and c2.tolist() == [0.0, 0.0]
+    # A rigidly moved copy: s_theta = s_t = 1 and unit unary scores give M = 1.
+    corner = [[[0, 0], [10, 0]], [[0, 0], [0, 10]]]
+    moved = transform(make_set([], corner, [SEG, SEG]), 1.1, (5.0, 7.0)).line_endpoints.tolist()
+    assert lines_pair(corner, moved, [SEG, SEG]) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_segments_stopping_short_compare_their_gap() -> None:
+    # The vertical segment stops 2 m above the horizontal one: closest points (5, 0) and (5, 2).
+    c1, c2 = closest_points_between_lines(
+        torch.tensor([[0.0, 0.0], [10.0, 0.0]]), torch.tensor(SEG), torch.tensor([[5.0, 2.0], [5.0, 10.0]]), torch.tensor(SEG)
+    )
+    assert c1.tolist() == [5.0, 0.0] and c2.tolist() == [5.0, 2.0]
+    aerial = [[[0, 0], [10, 0]], [[5, 2], [5, 10]]]
+    assert lines_pair(aerial, aerial, [SEG, SEG]) == pytest.approx(1.0)  # same gap
+    # Ground gap 3 m: c = 1, sigma inflated by tan(20) * mean lever (0 + 4 + 0 + 3.5) / 4.
+    ground = [[[0, 0], [10, 0]], [[5, 3], [5, 10]]]
+    delta = TAN * (4.0 + 3.5) / 4
+    expected_s = math.sqrt(math.exp(-1.0 / (2 * (2 + delta) ** 2)))
+    assert lines_pair(aerial, ground, [SEG, SEG]) == pytest.approx(expected_s ** (1 / 3), abs=1e-12)
+    # Ground gap 5 m: c = 3 > eps_t, inconsistent.
+    assert lines_pair(aerial, [[[0, 0], [10, 0]], [[5, 5], [5, 10]]], [SEG, SEG]) == 0.0
+
+
+def test_ray_closest_points() -> None:
+    seg = torch.tensor([[0.0, 0.0], [10.0, 0.0]])
+    # A ray starting 2 m above the segment and pointing away from it: gap at its start.
+    c1, c2 = closest_points_between_lines(seg, torch.tensor(SEG), torch.tensor([[5.0, 2.0], [5.0, 10.0]]), torch.tensor(RAY))
+    assert c1.tolist() == [5.0, 0.0] and c2.tolist() == [5.0, 2.0]
+    # The same ray pointing towards the segment crosses it.
+    c1, c2 = closest_points_between_lines(seg, torch.tensor(SEG), torch.tensor([[5.0, 2.0], [5.0, -10.0]]), torch.tensor(RAY))
+    assert c1.tolist() == [5.0, 0.0] and c2.tolist() == [5.0, 0.0]
+    # A ray ending before the segment's extension: endpoint fallback to (10, 0) and (13, 0)?
+    c1, c2 = closest_points_between_lines(seg, torch.tensor(SEG), torch.tensor([[13.0, 0.5], [20.0, 7.5]]), torch.tensor(RAY))
+    assert c1.tolist() == [10.0, 0.0] and c2.tolist() == [13.0, 0.5]
+    # Infinite lines always meet when not parallel.
+    c1, c2 = closest_points_between_lines(seg, torch.tensor(INF), torch.tensor([[13.0, 0.5], [20.0, 7.5]]), torch.tensor(INF))
+    torch.testing.assert_close(c1, c2)
+    torch.testing.assert_close(c1, torch.tensor([12.5, 0.0]))
+
+
+def test_parallel_lines() -> None:
+    e1, e2 = torch.tensor([[0.0, 0.0], [10.0, 0.0]]), torch.tensor([[5.0, 3.0], [15.0, 3.0]])
+    c1, c2 = closest_points_between_lines(e1, torch.tensor(SEG), e2, torch.tensor(SEG))
+    assert torch.linalg.vector_norm(c1 - c2).item() == pytest.approx(3.0)
+    # With an infinite line, its reference point (midpoint) anchors the pair.
+    c1, c2 = closest_points_between_lines(e1, torch.tensor(INF), e2, torch.tensor(SEG))
+    assert c1.tolist() == [5.0, 0.0] and c2.tolist() == [5.0, 3.0]
+    # Parallel (< 10 deg) same-map line pairs are never consistent, even when identical.
+    par = [[[0, 0], [10, 0]], [[0, 5], [10, 5.5]]]
+    assert lines_pair(par, par, [SEG, SEG]) == 0.0
+
+
+def test_point_line_along_across() -> None:
+    line = [[[0, 0], [10, 0]]]
+
+    def score(p_aerial, p_ground) -> float:
+        aerial, ground = make_set([p_aerial], line, [SEG]), make_set([p_ground], line, [SEG])
+        return float(affinity_matrix(ground, stack_primitive_sets([aerial]), identity_assoc(1, 1), CFG)[0, 0, 1])
+
+    # Across offsets 3 vs 3.5, N is the midpoint (no lever): split term f(0.5; 2/sqrt2) wins.
+    assert score([5, 3], [5, 3.5]) == pytest.approx(math.exp(-0.25 / 4) ** (1 / 3), abs=1e-12)
+    # Beyond the segment end: along offsets 3 vs 2 (c = 1, f(1; sqrt2)), lever 5 m each.
+    assert score([13, 0], [12, 0]) == pytest.approx(math.exp(-0.25) ** (1 / 3), abs=1e-12)
+    # Along offset too different: 4 vs 2 > eps / sqrt(2).
+    assert score([14, 0], [12, 0]) == 0.0
+
+
+def test_point_pairs_closer_than_3m_are_zero() -> None:
+    pts = [[0, 0], [2.5, 0], [10, 0]]
+    s = make_set(pts)
+    m = affinity_matrix(s, stack_primitive_sets([s]), identity_assoc(3, 0), CFG)[0]
+    assert m[0, 1] == 0 and m[1, 0] == 0
+    assert m[0, 2] == pytest.approx(1.0) and m[1, 2] == pytest.approx(1.0)
+
+
+def test_one_to_one_conflicts_are_zero() -> None:
+    s = make_set([[0, 0], [10, 0], [0, 10]])
+    # (g0, a0), (g0, a1), (g1, a1), (g2, a2): pairs sharing g0 or a1 conflict.
+    pairs = torch.tensor([[[0, 0], [0, 1], [1, 1], [2, 2]]])
+    assoc = Associations(
+        pairs=pairs,
+        is_line=torch.zeros(1, 4, dtype=torch.bool),
+        valid=torch.ones(1, 4, dtype=torch.bool),
+        cosine=torch.ones(1, 4, dtype=torch.float64),
+        n_point_assoc=4,
+        n_ground_points=3,
+        n_aerial_points=3,
+    )
+    m = affinity_matrix(s, stack_primitive_sets([s]), assoc, CFG)[0]
+    assert m[0, 1] == 0 and m[1, 2] == 0
+    assert m[0, 2] == pytest.approx(1.0) and m[0, 3] == pytest.approx(1.0) and m[2, 3] == pytest.approx(1.0)
+
+
+def test_unary_cosine_window() -> None:
+    s = make_set([[0, 0], [10, 0], [0, 10], [10, 10]])
+    assoc = identity_assoc(4, 0)
+    assoc = Associations(**{**assoc.__dict__, "cosine": torch.tensor([[0.05, 0.1, 0.3, 0.7]], dtype=torch.float64)})
+    q = unary_scores(s, stack_primitive_sets([s]), assoc, CFG)
+    torch.testing.assert_close(q, torch.tensor([[0.0, 0.0, 0.5, 1.0]], dtype=torch.float64))
+    m = affinity_matrix(s, stack_primitive_sets([s]), assoc, CFG)[0]
+    assert (m[0, 1:] == 0).all() and (m[1, 2:] == 0).all()  # q <= 0.1 kills the association
+    assert m[2, 3] == pytest.approx(0.5 ** (1 / 3))
+
+
+def structured_scene() -> PrimitiveSet:
+    """Well-separated points and lines 15 deg apart in direction: every true pair is consistent."""
+    points = [[6.0 * i, 11.0 * ((i * 7) % 5)] for i in range(8)]
+    lines, kinds = [], []
+    for k in range(7):
+        a = math.radians(5 + 25 * k)
+        o = [3.0 * k, -4.0 * k]
+        lines.append([o, [o[0] + 8 * math.cos(a), o[1] + 8 * math.sin(a)]])
+        kinds.append([SEG, RAY, INF][k % 3])
+    return make_set(points, lines, kinds, dim=16)
+
+
+def test_rigid_copy_true_associations_form_a_clique() -> None:
+    ground = structured_scene()
+    aerial = transform(ground, 2.0, (300.0, 120.0))
+    n = 8 + 7
+    # True associations plus shuffled (false) ones in each block.
+    pairs = [[i, i] for i in range(8)] + [[i, (i + 3) % 8] for i in range(8)]
+    pairs += [[8 + i, 8 + i] for i in range(7)] + [[8 + i, 8 + (i + 2) % 7] for i in range(7)]
+    valid = torch.ones(1, len(pairs), dtype=torch.bool)
+    assoc = Associations(
+        pairs=torch.tensor([pairs]),
+        is_line=torch.tensor([[False] * 16 + [True] * 14]),
+        valid=valid,
+        cosine=torch.full((1, len(pairs)), 0.8, dtype=torch.float64),
+        n_point_assoc=16,
+        n_ground_points=8,
+        n_aerial_points=8,
+    )
+    m = affinity_matrix(ground, stack_primitive_sets([aerial]), assoc, CFG)[0]
+    true = torch.tensor([i < 8 or 16 <= i < 23 for i in range(len(pairs))])
+    sub_true = m[true][:, true]
+    assert sub_true.shape == (n, n)
+    assert (sub_true > 0.99).all()  # a clique of near-unit weights
+    # The false associations are inconsistent with the true set for most pairs.
+    assert m[true][:, ~true].mean() < 0.3 * sub_true.mean()
+
+
+def test_known_rotation_rejects_wrong_heading() -> None:
+    ground = structured_scene()
+    yaw = 0.5
+    aerial = stack_primitive_sets([transform(ground, yaw, (50.0, -30.0))] * 2)
+    idx = torch.arange(15)
+    assoc = Associations(
+        pairs=torch.stack([idx, idx], -1)[None].expand(2, 15, 2),
+        is_line=(idx >= 8)[None].expand(2, 15),
+        valid=torch.ones(2, 15, dtype=torch.bool),
+        cosine=torch.ones(2, 15, dtype=torch.float64),
+        n_point_assoc=8,
+        n_ground_points=8,
+        n_aerial_points=8,
+    )
+    # Patch 0 gets the correct prior; patch 1 a prior 60 deg off.
+    prior = torch.tensor([yaw, yaw - math.radians(60)], dtype=torch.float64)
+    m = affinity_matrix(ground, aerial, assoc, CFG, rotation_prior=prior)
+    off = ~torch.eye(15, dtype=torch.bool)
+    assert (m[0][off] > 0.99).all()
+    assert (m[1][off] > 0).float().mean() < 0.1
+    q = unary_scores(ground, aerial, assoc, CFG, rotation_prior=prior)
+    assert (q[1, 8:] == 0).all() and (q[0] == 1).all()  # line heading 60 deg off > 40 deg
+    # Without the prior both patches accept everything (rotation-invariant scores).
+    free = affinity_matrix(ground, aerial, assoc, CFG)
+    assert (free[:, off] > 0.99).all()
+
+
+def test_auto_switches_to_sparse() -> None:
+    s = structured_scene()
+    assoc = identity_assoc(8, 7)
+    batch = stack_primitive_sets([s])
+    dense = affinity(s, batch, assoc, CFG)
+    assert not dense.is_sparse
+    sparse = affinity(s, batch, assoc, AffinityConfig(dense_max_m=10))
+    assert sparse.is_sparse
+    torch.testing.assert_close(sparse.to_dense(), dense)

@@ -1,0 +1,135 @@
+"""Putative associations: batched K-NN over patches equals a per-patch, per-primitive loop."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from meridian_torch.matching.associations import putative_associations
+from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
+
+
+def random_set(n_points: int, n_lines: int, dim: int, gen: torch.Generator, short_fraction: float = 0.3) -> PrimitiveSet:
+    """Random primitives; about `short_fraction` of the lines are shorter than 2 m."""
+    e0 = torch.rand(n_lines, 2, generator=gen, dtype=torch.float64) * 50
+    angle = torch.rand(n_lines, generator=gen, dtype=torch.float64) * math.pi
+    short = torch.rand(n_lines, generator=gen) < short_fraction
+    length = torch.where(short, 0.5 + torch.rand(n_lines, generator=gen, dtype=torch.float64), 3 + 10 * torch.rand(n_lines, generator=gen, dtype=torch.float64))
+    e1 = e0 + length[:, None] * torch.stack([angle.cos(), angle.sin()], dim=1)
+    desc = lambda n: torch.nn.functional.normalize(torch.randn(n, dim, generator=gen, dtype=torch.float64), dim=1)  # noqa: E731
+    return PrimitiveSet(
+        points_xy=torch.rand(n_points, 2, generator=gen, dtype=torch.float64) * 50,
+        point_descriptors=desc(n_points),
+        point_segment_ids=torch.arange(n_points),
+        line_endpoints=torch.stack([e0, e1], dim=1),
+        line_kinds=torch.randint(0, 3, (n_lines,), generator=gen),
+        line_descriptors=desc(n_lines),
+        line_segment_ids=torch.arange(n_lines),
+    )
+
+
+def usable_lines(s: PrimitiveSet, min_len: float) -> list[bool]:
+    out = []
+    for e, k in zip(s.line_endpoints.tolist(), s.line_kinds.tolist()):
+        length = math.dist(e[0], e[1])
+        out.append(length > 0 and (k != int(LineKind.SEGMENT) or length >= min_len))
+    return out
+
+
+def loop_reference(ground: PrimitiveSet, patches: list[PrimitiveSet], k: int, union: bool, min_len: float) -> list[dict]:
+    """Per patch: {(ground index, aerial index in the batch's unified space): cosine}."""
+    n_gp = ground.points_xy.shape[0]
+    n_ap = max(p.points_xy.shape[0] for p in patches)
+    out = []
+    for patch in patches:
+        pairs: dict[tuple[int, int], float] = {}
+        for kind in ("points", "lines"):
+            gd = ground.point_descriptors if kind == "points" else ground.line_descriptors
+            ad = patch.point_descriptors if kind == "points" else patch.line_descriptors
+            g_ok = [True] * gd.shape[0] if kind == "points" else usable_lines(ground, min_len)
+            a_ok = [True] * ad.shape[0] if kind == "points" else usable_lines(patch, min_len)
+            g_off, a_off = (0, 0) if kind == "points" else (n_gp, n_ap)
+            cos = lambda gi, ai: float(gd[gi] @ ad[ai])  # noqa: E731
+            g_ids = [i for i, ok in enumerate(g_ok) if ok]
+            a_ids = [i for i, ok in enumerate(a_ok) if ok]
+            for gi in g_ids:
+                for ai in sorted(a_ids, key=lambda a: -cos(gi, a))[:k]:
+                    pairs[(gi + g_off, ai + a_off)] = cos(gi, ai)
+            if union:
+                for ai in a_ids:
+                    for gi in sorted(g_ids, key=lambda g: -cos(g, ai))[:k]:
+                        pairs[(gi + g_off, ai + a_off)] = cos(gi, ai)
+        out.append(pairs)
+    return out
+
+
+@pytest.mark.parametrize("direction", ["ground_to_aerial", "union"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batched_topk_equals_loop(direction: str, seed: int) -> None:
+    gen = torch.Generator().manual_seed(seed)
+    ground = random_set(9, 8, 16, gen)
+    # Different sizes per patch, so the batch carries padding on both types.
+    patches = [random_set(n_p, n_l, 16, gen) for n_p, n_l in ((12, 10), (3, 2), (7, 14), (0, 5))]
+    k = 4
+    assoc = putative_associations(ground, stack_primitive_sets(patches), k_prim=k, direction=direction)
+    ref = loop_reference(ground, patches, k, direction == "union", 2.0)
+    for p in range(len(patches)):
+        v = assoc.valid[p]
+        got = {tuple(pair): c for pair, c in zip(assoc.pairs[p][v].tolist(), assoc.cosine[p][v].tolist())}
+        assert set(got) == set(ref[p])
+        for key, c in ref[p].items():
+            assert got[key] == pytest.approx(c, abs=1e-12)
+        # Padding is marked, and the point / line blocks hold their own type only.
+        assert (assoc.pairs[p][~v] == -1).all() and (assoc.cosine[p][~v] == 0).all()
+        g_idx, a_idx = assoc.pairs[p, :, 0], assoc.pairs[p, :, 1]
+        is_line = assoc.is_line[p]
+        assert (is_line == (torch.arange(assoc.size) >= assoc.n_point_assoc)).all()
+        assert (g_idx[v & ~is_line] < assoc.n_ground_points).all() and (g_idx[v & is_line] >= assoc.n_ground_points).all()
+        assert (a_idx[v & ~is_line] < assoc.n_aerial_points).all() and (a_idx[v & is_line] >= assoc.n_aerial_points).all()
+    # ground_to_aerial bounds the size by k per ground primitive.
+    if direction == "ground_to_aerial":
+        assert int(assoc.valid.sum(1).max()) <= k * (9 + 8)
+
+
+def test_min_line_length_filter_and_kinds() -> None:
+    d = torch.eye(4, dtype=torch.float64)
+    endpoints = torch.tensor(
+        [[[0, 0], [1, 0]], [[0, 5], [1, 5]], [[0, 9], [1, 9]], [[0, 12], [8, 12]]], dtype=torch.float64
+    )
+    kinds = torch.tensor([int(LineKind.SEGMENT), int(LineKind.RAY), int(LineKind.INFINITE), int(LineKind.SEGMENT)])
+    lines = PrimitiveSet(
+        points_xy=torch.zeros(0, 2, dtype=torch.float64),
+        point_descriptors=torch.zeros(0, 4, dtype=torch.float64),
+        point_segment_ids=torch.zeros(0, dtype=torch.int64),
+        line_endpoints=endpoints,
+        line_kinds=kinds,
+        line_descriptors=d,
+        line_segment_ids=torch.arange(4),
+    )
+    assoc = putative_associations(lines, stack_primitive_sets([lines]), k_prim=4)
+    used = assoc.pairs[0][assoc.valid[0]]
+    # The 1 m segment (index 0) is gone on both sides; the 1 m ray and infinite line stay.
+    assert not (used == 0).any()
+    assert set(used[:, 0].tolist()) == {1, 2, 3} and set(used[:, 1].tolist()) == {1, 2, 3}
+    assoc = putative_associations(lines, stack_primitive_sets([lines]), k_prim=4, min_line_length_m=0.5)
+    assert 0 in assoc.pairs[0][assoc.valid[0]][:, 0].tolist()
+
+
+def test_k_larger_than_candidates_and_empty_types() -> None:
+    gen = torch.Generator().manual_seed(5)
+    ground = random_set(3, 0, 8, gen)
+    patches = [random_set(2, 4, 8, gen), random_set(5, 1, 8, gen)]
+    assoc = putative_associations(ground, stack_primitive_sets(patches), k_prim=20)
+    assert assoc.n_point_assoc == assoc.size  # no ground lines: no line block
+    assert assoc.valid.sum(1).tolist() == [3 * 2, 3 * 5]
+
+
+def test_rejects_bad_arguments() -> None:
+    gen = torch.Generator().manual_seed(0)
+    s = random_set(2, 2, 4, gen)
+    with pytest.raises(ValueError):
+        putative_associations(s, stack_primitive_sets([s]), k_prim=0)
+    with pytest.raises(ValueError):
+        putative_associations(s, stack_primitive_sets([s]), direction="aerial_to_ground")  # type: ignore[arg-type]
