@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 from scipy.spatial import Delaunay
 
+from meridian_torch.mapping import segment_to_primitives as s2p
 from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.segment_to_primitives import (
     alpha_shape_outline,
@@ -228,10 +229,123 @@ def test_outline_band_equals_full_triangulation():
         assert ring is not None and {tuple(np.round(p, 9)) for p in ring} == {tuple(np.round(p, 9)) for p in expected}
 
 
+def test_outline_without_band_equals_outline_with_band(monkeypatch):
+    """Small point sets skip the boundary band; that gives bit-identical outlines."""
+    rng = np.random.default_rng(11)
+    shapes = 0
+    for _ in range(60):
+        spacing, r = rng.choice([0.1, 0.3]), rng.uniform(1.0, 5.0)
+        xs = np.arange(-r, r, spacing)
+        g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+        q = rotate(g, rng.uniform(0.0, np.pi))
+        inside = (np.abs(q[:, 0]) < r * rng.uniform(0.3, 1.0)) & (np.abs(q[:, 1]) < r * rng.uniform(0.1, 1.0))
+        inside |= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) < rng.uniform(0.5, r)
+        inside &= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) > rng.uniform(0.0, 1.5)  # notches, holes
+        pts = g[inside] + rng.uniform(-300.0, 300.0, 2)
+        outlines = []
+        for band_min in (10**9, 0):  # never / always the band
+            monkeypatch.setattr(s2p, "BAND_MIN_POINTS", band_min)
+            outlines.append(alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m))
+        assert (outlines[0] is None) == (outlines[1] is None)
+        if outlines[0] is not None:
+            shapes += 1
+            assert np.array_equal(outlines[0], outlines[1])
+    assert shapes > 40
+
+
 def _circumradius(t: np.ndarray) -> float:
     a, b, c = (np.linalg.norm(t[i] - t[(i + 1) % 3]) for i in range(3))
     area = 0.5 * abs((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1]) - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
     return math.inf if area == 0 else a * b * c / (4.0 * area)
+
+
+def _fuse_full_sweeps(original, table, rows, cfg):
+    """Fusion as before the incremental pair list: every sweep recomputes all mergeable pairs."""
+    current, label = original.copy(), np.arange(len(original))
+    for _ in range(cfg.line_merge_max_sweeps):
+        if len(current) < 2:
+            break
+        pairs, sin = s2p._mergeable(current, table, rows, cfg)
+        if len(pairs) == 0:
+            break
+        merged = s2p._greedy_matching(pairs, sin, len(current))
+        a, b = merged[:, 0], merged[:, 1]
+        mixed = rows[a] != rows[b]
+        if mixed.any():
+            lengths = torch.from_numpy(np.linalg.norm(current[:, 1] - current[:, 0], axis=1)).to(table)
+            new = lengths[a[mixed], None] * table[rows[a[mixed]]] + lengths[b[mixed], None] * table[rows[b[mixed]]]
+            rows = rows.copy()
+            rows[a[mixed]] = len(table) + np.arange(int(mixed.sum()))
+            table = torch.cat([table, torch.nn.functional.normalize(new, dim=-1)])
+        keep = np.ones(len(current), dtype=bool)
+        keep[b] = False
+        target = np.arange(len(current))
+        target[b] = a
+        remap = (np.cumsum(keep) - 1)[target]
+        label = remap[label]
+        current, rows = current[keep], rows[keep]
+        groups = np.sort(remap[a])
+        current[groups] = s2p._refit(original, label, groups)
+    return current, table, rows, label
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_incremental_fusion_equals_full_sweeps(seed: int):
+    """Keeping the untouched pairs between sweeps gives bit-identical fused lines."""
+    rng = np.random.default_rng(seed)
+    segments, seg_of = [], []
+    for k in range(12):  # outline edges of overlapping rotated rectangles and discs, as in an aerial patch
+        c = rng.uniform(0.0, 30.0, 2)
+        if k % 3:
+            pts = rotate(grid(0.0, rng.uniform(3.0, 12.0), 0.0, rng.uniform(2.0, 8.0)), rng.uniform(0, np.pi)) + c
+        else:
+            pts = disc(rng.uniform(2.0, 5.0), tuple(c))
+        ring = alpha_shape_outline(pts + rng.normal(0.0, 0.03, pts.shape), CFG.alpha, CFG.alpha_grid_m)
+        segments.append(np.stack([ring, np.roll(ring, -1, axis=0)], axis=1))
+        seg_of.append(np.full(len(ring), k))
+    lines, seg_of = np.concatenate(segments), np.concatenate(seg_of)
+    clusters = np.eye(8)[rng.integers(0, 3, 12)]  # several segments per class: mixed merges happen
+    desc = torch.nn.functional.normalize(torch.from_numpy(clusters + rng.normal(0.0, 0.08, (12, 8))), dim=-1)
+    fast = s2p._fuse(lines, desc, seg_of, CFG)
+    slow = _fuse_full_sweeps(lines, desc, seg_of, CFG)
+    assert len(fast[0]) < len(lines) // 3  # the scene exercises several sweeps
+    assert np.array_equal(fast[0], slow[0]) and np.array_equal(fast[3], slow[3])
+    assert torch.equal(fast[1][torch.from_numpy(fast[2])], slow[1][torch.from_numpy(slow[2])])
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.1])
+def test_simplified_outline_keeps_the_sides(angle: float):
+    cfg = PrimitiveConfig(outline_simplify_m=0.1)
+    square = rotate(grid(0.0, 20.0, 0.0, 20.0) - 10.0, angle) + np.array([40.0, 40.0])
+    plain = segments_to_primitives([square], torch.eye(2)[:1], CFG)
+    simple = segments_to_primitives([square], torch.eye(2)[:1], cfg)
+    corners = rotate(np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]), angle) + 40.0
+    for out in (plain, simple):
+        long = out.line_endpoints[torch.from_numpy(lengths(out.line_endpoints) > 1.0)].double().numpy()
+        assert len(long) == 4
+        for k in range(4):
+            a, b = corners[k], corners[(k + 1) % 4]
+            assert_matches_side(next(ln for ln in long if np.linalg.norm(ln.mean(0) - (a + b) / 2) < 1.0), a, b)
+    # the simplified edges are outline vertices, lie inside the box, and stay within tolerance
+    ring = alpha_shape_outline(square, CFG.alpha, CFG.alpha_grid_m)
+    box = np.array([-np.inf, np.inf, -np.inf, np.inf])
+    edges = s2p._simplified_outline_edges(ring, box, 0.1)
+    assert len(edges) < len(ring) / 3 and np.array_equal(edges[1:, 0], edges[:-1, 1])
+    assert {tuple(p) for p in edges.reshape(-1, 2)} <= {tuple(p) for p in ring}
+    simplified = shapely.LineString(np.concatenate([edges[:, 0], edges[-1:, 1]]))
+    assert shapely.LineString(np.concatenate([ring, ring[:1]])).hausdorff_distance(simplified) < 0.1 + 1e-9
+
+
+def test_simplified_outline_is_cut_at_the_border_box():
+    ring = alpha_shape_outline(grid(0.0, 20.0, 0.0, 20.0), CFG.alpha, CFG.alpha_grid_m)
+    box = np.array([-5.0, 19.5, -5.0, 25.0])  # the side x = 20 is outside
+    plain = np.stack([ring, np.roll(ring, -1, axis=0)], axis=1)
+    plain = plain[s2p._inside(plain, box).all(axis=1)]
+    edges = s2p._simplified_outline_edges(ring, box, 0.1)
+    assert s2p._inside(edges, box).all() and len(edges) < len(plain) / 3
+    covered = shapely.union_all(shapely.linestrings(edges))
+    assert abs(covered.length - shapely.union_all(shapely.linestrings(plain)).length) < 0.05
+    assert covered.length > 3 * 19.0  # three sides, none lost with its last vertex
 
 
 def test_fit_circle_recovers_a_circle():

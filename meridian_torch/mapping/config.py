@@ -47,6 +47,11 @@ class PrimitiveConfig(StrictModel):
     circle_max_fit_error_frac: float = Field(
         default=0.3, gt=0, description="circle accepted if its RMS radial residual < this fraction of the radius"
     )
+    outline_simplify_m: float = Field(
+        default=0.05,
+        ge=0,
+        description="Douglas-Peucker tolerance (m) of the outline before its edges become lines; 0 = off (reference)",
+    )
     border_margin_m: float = Field(
         default=0.5, ge=0, description="primitives must lie this far inside the border box (aerial sub-crops)"
     )
