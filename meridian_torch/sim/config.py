@@ -146,3 +146,11 @@ class SimConfig(StrictModel):
     render: GroundRenderConfig = GroundRenderConfig()
     trajectory: TrajectoryConfig = TrajectoryConfig()
     odometry: OdometryConfig = OdometryConfig()
+
+    @model_validator(mode="after")
+    def _alignment_matches_raster(self) -> "SimConfig":
+        raster = self.world.class_raster
+        if raster is not None and self.trajectory.alignment_path and self.trajectory.alignment_y_up != raster.flip_vertical:
+            raise ValueError("trajectory.alignment_y_up must equal world.class_raster.flip_vertical "
+                             "(the alignment is expressed in the stored raster's rows)")
+        return self

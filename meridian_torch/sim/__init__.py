@@ -1,0 +1,1 @@
+"""Simulator: procedural and raster-based worlds, orthophoto and RGB-D renderers, drives, odometry."""
