@@ -96,3 +96,16 @@ def test_missing_orthophoto_is_a_clear_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["build-map", str(tmp_path / "nothing"), "--out", str(tmp_path / "m.mtm")])
     assert result.exit_code == 1
     assert "nothing" in result.output and "Traceback" not in result.output
+
+
+def test_sub_crop_segmentation_stays_in_the_patch(ortho: Orthophoto) -> None:
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", ["aerial_map.segmentation_crop_m=40"])
+    crop_map = build_aerial_map(ortho, AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives))
+    prims = crop_map.primitives
+    assert int(prims.point_valid.sum()) > 0 and int(prims.line_valid.sum()) > 0
+    bounds = torch.from_numpy(crop_map.patches.bounds_xy).float()
+    ends = prims.line_endpoints[prims.line_valid]
+    owner = torch.nonzero(prims.line_valid)[:, 0]
+    lo = torch.stack([bounds[owner, 0], bounds[owner, 2]], dim=1)[:, None]
+    hi = torch.stack([bounds[owner, 1], bounds[owner, 3]], dim=1)[:, None]
+    assert bool(((ends >= lo - 1e-3) & (ends <= hi + 1e-3)).all())

@@ -80,20 +80,21 @@ class AerialMapper:
         patches = _to_tensor([ortho.image[r0:r1, c0:c1] for c0, r0, c1, r1 in boxes], self.device)
         global_desc = self.global_describer.describe(patches)
 
-        # Segmentation crops: the whole patch, or sub-crops (as the reference, for large patches).
-        crop_px = patches.shape[-1] if self.aerial.segmentation_crop_m is None else max(
-            1, int(round(self.aerial.segmentation_crop_m / mpp)))
-        offs_c = crop_offsets(patches.shape[-1], crop_px)
-        offs_r = crop_offsets(patches.shape[-2], crop_px)
-        crops, crop_origin_px = [], []
-        for b, (c0, r0, _, _) in enumerate(boxes):
-            for dr in offs_r:
-                for dc in offs_c:
-                    crops.append(patches[b, :, dr : dr + crop_px, dc : dc + crop_px])
-                    crop_origin_px.append((b, c0 + dc, r0 + dr))
-        # One crop per patch covering it whole (the default): the crops are the patches.
-        whole = len(crops) == len(boxes) and all(c.shape == patches.shape[1:] for c in crops)
-        crops_t = patches if whole else torch.stack(crops)
+        # Segmentation crops: the whole patch (default), or square sub-crops as the reference does.
+        h_px, w_px = patches.shape[-2:]
+        if self.aerial.segmentation_crop_m is None:
+            crops_t = patches
+            crop_origin_px = [(b, c0, r0) for b, (c0, r0, _, _) in enumerate(boxes)]
+        else:
+            crop_px = max(1, int(round(self.aerial.segmentation_crop_m / mpp)))
+            ch, cw = min(crop_px, h_px), min(crop_px, w_px)
+            crops, crop_origin_px = [], []
+            for b, (c0, r0, _, _) in enumerate(boxes):
+                for dr in crop_offsets(h_px, ch):
+                    for dc in crop_offsets(w_px, cw):
+                        crops.append(patches[b, :, dr : dr + ch, dc : dc + cw])
+                        crop_origin_px.append((b, c0 + dc, r0 + dr))
+            crops_t = torch.stack(crops)
         seg = self.segmenter.segment(crops_t, mpp)
         desc = self.describer.describe(crops_t, seg.masks, seg.valid)
 
