@@ -17,6 +17,7 @@ from pydantic import Field, ValidationError
 
 from meridian_torch.errors import ConfigError
 from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.matching.config import MatchConfig
 from meridian_torch.perception.config import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
 from meridian_torch.sim.config import SimConfig, StrictModel
 
@@ -25,7 +26,6 @@ __all__ = [
     "PerceptionConfig",
     "AerialMapConfig",
     "GroundMapConfig",
-    "MatchingConfig",
     "BackendConfig",
     "EvaluationConfig",
     "MeridianConfig",
@@ -70,16 +70,6 @@ class GroundMapConfig(StrictModel):
     submap_radius_m: float = Field(default=40.0, gt=0)
 
 
-class MatchingConfig(StrictModel):
-    k_global: int = Field(default=25, ge=1, description="aerial patches matched per submap")
-    k_prim: int = Field(default=20, ge=1, description="semantic neighbours per ground primitive")
-    sigma_t_m: float = Field(default=2.0, gt=0)
-    sigma_theta_deg: float = Field(default=20.0, gt=0)
-    hypotheses_per_patch: int = Field(default=25, ge=1, description="L")
-    cluster_translation_m: float = Field(default=1.0, gt=0)
-    cluster_rotation_deg: float = Field(default=5.0, gt=0)
-
-
 class BackendConfig(StrictModel):
     """Robust pose graph: loop-closure noise grows with the odometry path length l."""
 
@@ -104,7 +94,7 @@ class MeridianConfig(StrictModel):
     primitives: PrimitiveConfig = PrimitiveConfig()
     aerial_map: AerialMapConfig = AerialMapConfig()
     ground_map: GroundMapConfig = GroundMapConfig()
-    matching: MatchingConfig = MatchingConfig()
+    matching: MatchConfig = MatchConfig()
     backend: BackendConfig = BackendConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
 

@@ -19,10 +19,10 @@ def test_help_lists_commands() -> None:
 
 
 def test_config_show_resolves_overrides() -> None:
-    result = runner.invoke(app, ["config", "show", "-c", str(CONFIG_DIR / "tiny.yaml"), "--set", "matching.k_prim=7"])
+    result = runner.invoke(app, ["config", "show", "-c", str(CONFIG_DIR / "tiny.yaml"), "--set", "matching.associations.k_prim=7"])
     assert result.exit_code == 0, result.output
     shown = yaml.safe_load(result.output)
-    assert shown["matching"]["k_prim"] == 7
+    assert shown["matching"]["associations"]["k_prim"] == 7
     assert shown["sim"]["name"] == load_config(CONFIG_DIR / "tiny.yaml").sim.name
 
 

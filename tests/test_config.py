@@ -39,8 +39,11 @@ def test_paper_defaults() -> None:
     assert (cfg.aerial_map.patch_size_m, cfg.aerial_map.patch_overlap) == (60.0, 0.5)
     assert (cfg.ground_map.submap_trigger_new_segments, cfg.ground_map.submap_max_segments) == (20, 120)
     assert cfg.ground_map.submap_radius_m == 40.0
-    assert (cfg.matching.k_global, cfg.matching.k_prim, cfg.matching.hypotheses_per_patch) == (25, 20, 25)
-    assert (cfg.matching.sigma_t_m, cfg.matching.sigma_theta_deg) == (2.0, 20.0)
+    m = cfg.matching
+    assert (m.place_recognition.k_global, m.associations.k_prim, m.hypotheses_per_patch) == (25, 20, 25)
+    assert (m.affinity.sigma_t_m, m.affinity.sigma_theta_deg) == (2.0, 20.0)
+    assert (m.affinity.epsilon_t_m, m.affinity.epsilon_theta_deg) == (2.0, 20.0)  # zero outside sigma
+    assert (m.cluster_translation_m, m.cluster_rotation_deg) == (1.0, 5.0)
     assert (cfg.backend.sigma_yaw_deg, cfg.backend.sigma_yaw_deg_per_m) == (5.0, 0.02)
     assert (cfg.backend.sigma_t_m, cfg.backend.sigma_t_m_per_m) == (2.0, 0.05)
     assert (cfg.backend.fix_min_inliers, cfg.backend.fix_min_inlier_fraction) == (6, 0.5)
@@ -56,8 +59,8 @@ def test_unknown_key_is_named(tmp_path: Path) -> None:
 
 def test_bad_value_is_named(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
-    path.write_text("matching:\n  k_global: -3\n")
-    with pytest.raises(ConfigError, match=r"matching\.k_global.*-3"):
+    path.write_text("matching:\n  place_recognition:\n    k_global: -3\n")
+    with pytest.raises(ConfigError, match=r"matching\.place_recognition\.k_global.*-3"):
         load_config(path)
 
 
@@ -66,9 +69,9 @@ def test_extends_and_overrides(tmp_path: Path) -> None:
     base.write_text("sim:\n  seed: 5\n  name: base\n")
     child = tmp_path / "child.yaml"
     child.write_text("extends: base.yaml\nsim:\n  name: child\n")
-    cfg = load_config(child, ["sim.world.size_m=[50, 60]", "matching.k_global=3"])
+    cfg = load_config(child, ["sim.world.size_m=[50, 60]", "matching.place_recognition.k_global=3"])
     assert cfg.sim.seed == 5 and cfg.sim.name == "child"
-    assert cfg.sim.world.size_m == (50.0, 60.0) and cfg.matching.k_global == 3
+    assert cfg.sim.world.size_m == (50.0, 60.0) and cfg.matching.place_recognition.k_global == 3
 
 
 @pytest.mark.parametrize("override", ["nokey", "=3", "sim.seed.x=1"])
@@ -78,8 +81,8 @@ def test_malformed_override(override: str) -> None:
 
 
 def test_unknown_override_key_is_named() -> None:
-    with pytest.raises(ConfigError, match=r"unknown key 'matching\.k_globl'"):
-        load_config(None, ["matching.k_globl=3"])
+    with pytest.raises(ConfigError, match=r"unknown key 'matching\.place_recognition\.k_globl'"):
+        load_config(None, ["matching.place_recognition.k_globl=3"])
 
 
 def test_dump_round_trip(tmp_path: Path) -> None:

@@ -176,9 +176,26 @@ class ParticleConfig(StrictModel):
 __all__ += ["ParticleConfig"]
 
 
-class MatchConfig(StrictModel):
-    """Everything `match_submap` needs: associations, affinity, the inlier-set solver, clustering."""
+class PlaceRecognitionConfig(StrictModel):
+    """Which aerial patches a ground submap is matched against."""
 
+    mode: Literal["global", "exhaustive", "near"] = Field(
+        default="global",
+        description="'global': top k_global patches by descriptor similarity; 'exhaustive': every patch "
+        "(small maps); 'near': the patches overlapping most with a disk around a predicted position",
+    )
+    k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
+    near_radius_m: float = Field(default=25.0, gt=0, description="disk radius around the predicted position, 'near' mode")
+    near_patches: int = Field(default=2, ge=1, description="patches kept in 'near' mode (largest overlap first)")
+
+
+__all__ += ["PlaceRecognitionConfig"]
+
+
+class MatchConfig(StrictModel):
+    """Everything matching needs: patch selection, associations, affinity, the inlier-set solver, clustering."""
+
+    place_recognition: PlaceRecognitionConfig = Field(default_factory=PlaceRecognitionConfig)
     associations: AssociationConfig = Field(default_factory=AssociationConfig)
     affinity: AffinityConfig = Field(default_factory=AffinityConfig)
     particles: ParticleConfig = Field(default_factory=ParticleConfig)

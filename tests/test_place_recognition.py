@@ -1,0 +1,59 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from meridian_torch.matching.config import PlaceRecognitionConfig
+from meridian_torch.matching.place_recognition import disk_overlap, select_patches, stack_similarity
+
+
+def test_stack_similarity_is_max_cosine_over_valid_frames() -> None:
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randn(3, 4, 8, generator=gen)
+    valid = torch.tensor([[True, True, False, False], [True, True, True, True], [False] * 4])
+    patches = torch.randn(5, 8, generator=gen)
+    sim = stack_similarity(frames, valid, patches)
+    for s in range(3):
+        for p in range(5):
+            cos = [torch.nn.functional.cosine_similarity(frames[s, f], patches[p], dim=0)
+                   for f in range(4) if valid[s, f]]
+            expected = max(cos) if cos else torch.tensor(float("-inf"))
+            assert torch.allclose(sim[s, p], torch.as_tensor(expected), atol=1e-6)
+
+
+def test_global_mode_takes_the_top_k_and_flags_missing() -> None:
+    sim = torch.tensor([[0.1, 0.9, 0.5, float("-inf")], [float("-inf")] * 4])
+    idx, valid = select_patches(PlaceRecognitionConfig(k_global=3), 2, 4, similarity=sim)
+    assert idx[0].tolist() == [1, 2, 0] and valid[0].all()
+    assert not valid[1].any()
+
+
+def test_exhaustive_mode_lists_every_patch() -> None:
+    idx, valid = select_patches(PlaceRecognitionConfig(mode="exhaustive"), 3, 7)
+    assert idx.shape == (3, 7) and valid.all() and idx[2].tolist() == list(range(7))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(1, 30))
+def test_disk_overlap_matches_the_exact_area_for_a_half_plane(cx: float, cy: float, r: float) -> None:
+    # A box far larger than the disk, cut at x = cx: exactly half the disk is inside.
+    box = torch.tensor([[cx, cx + 1e4, cy - 1e4, cy + 1e4]], dtype=torch.float64)
+    frac = disk_overlap(torch.tensor([[cx, cy]], dtype=torch.float64), r, box)
+    assert abs(float(frac) - 0.5) < 0.03
+    inside = torch.tensor([[cx - 1e4, cx + 1e4, cy - 1e4, cy + 1e4]], dtype=torch.float64)
+    assert float(disk_overlap(torch.tensor([[cx, cy]], dtype=torch.float64), r, inside)) == pytest.approx(1.0)
+
+
+def test_near_mode_picks_the_patches_around_the_prediction() -> None:
+    # A 3 x 3 grid of 60 m patches at a 30 m stride; the prediction sits in the top-right corner.
+    bounds = torch.tensor([[30.0 * i, 30.0 * i + 60, 30.0 * j, 30.0 * j + 60] for j in range(3) for i in range(3)])
+    cfg = PlaceRecognitionConfig(mode="near", near_radius_m=10.0, near_patches=2)
+    idx, valid = select_patches(cfg, 1, 9, predicted_xy=torch.tensor([[110.0, 110.0]]), patch_bounds_xy=bounds)
+    assert idx[0, 0].item() == 8 and valid[0, 0]  # only the last patch contains the whole disk
+    far = select_patches(cfg, 1, 9, predicted_xy=torch.tensor([[500.0, 500.0]]), patch_bounds_xy=bounds)
+    assert not far[1].any()
+    assert math.isclose(float(disk_overlap(torch.tensor([[110.0, 110.0]]), 10.0, bounds[8:9])), 1.0)
