@@ -1,0 +1,385 @@
+"""Benchmark `match_submap`: one batched call over P aerial patches vs a per-patch loop.
+
+Synthetic scene (all sizes are flags):
+- one ground submap of 60 points + 40 lines, random positions in a disc of radius `--radius`
+  metres around the odom origin, L2-normalised D = 32 descriptors drawn around 8 class centres
+  (so top-k semantic neighbours are informative but not unique);
+- P = 25 aerial patches (5 with `--quick`) of 90 points + 60 lines each in the world frame.
+  One of them (the "true" patch) holds 70 % of the ground primitives moved by a known SE(2)
+  T_world_odom, with 0.3 m position noise and perturbed descriptors, plus random outliers up to
+  the same size; the other patches are random primitives around random world centres.
+
+Measured, each in a fresh subprocess (`--mode batched|loop|clipper`, spawned by the parent), so
+that the process peak resident set size (ru_maxrss) belongs to that one stage:
+  (a) batched: `match_submap(ground, stack_primitive_sets(all patches), ...)` in one call;
+  (b) loop:    `match_submap(ground, stack_primitive_sets([patch]), ...)` for every patch;
+  (c) clipper: `bench_clipper(sizes, seed)` from scripts/bench_clipper.py (CLIPPER solver alone
+      on random planted-clique graphs, n = 500, 1000, 2000 by default).
+For (a) and (b) it reports wall time (after a tiny warm-up match that loads lazy code paths),
+the peak RSS of the process and its increase over the RSS after building the scene, and whether
+the top hypothesis of the true patch is within 5 m / 5 deg of the planted transform. Both modes
+draw the per-patch particle seeds from one generator seeded with `--seed`, so if torch's
+generator yields the same sequence one draw at a time the two modes solve identical problems
+(reported as "same per-patch seeds").
+
+    python scripts/bench_matching.py --quick
+    python scripts/bench_matching.py --particles 32 --iterations 200
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULT_TAG = "BENCH_MATCHING_RESULT "
+
+
+def _peak_rss_mib() -> float:
+    """Peak resident set size of this process so far (Linux: KiB, macOS: bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def _current_rss_mib() -> float:
+    """Current resident set size (Linux /proc; falls back to the peak elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return _peak_rss_mib()
+
+
+# --------------------------------------------------------------------------------------------
+# Scene
+# --------------------------------------------------------------------------------------------
+
+
+def build_scene(args: argparse.Namespace):
+    """Returns ground PrimitiveSet, list of aerial PrimitiveSets, true index, (yaw, tx, ty)."""
+    import torch
+    import torch.nn.functional as F
+
+    from meridian_torch.types import PrimitiveSet
+
+    gen = torch.Generator().manual_seed(args.seed)
+    D = args.descriptor_dim
+    centres = F.normalize(torch.randn(args.classes, D, generator=gen), dim=1)
+
+    def disc(n: int, radius: float) -> torch.Tensor:
+        r = radius * torch.rand(n, generator=gen).sqrt()
+        a = 2 * math.pi * torch.rand(n, generator=gen)
+        return torch.stack([r * a.cos(), r * a.sin()], 1)
+
+    def lines(n: int, radius: float) -> torch.Tensor:
+        e0 = disc(n, radius)
+        ang = torch.rand(n, generator=gen) * math.pi
+        length = 4 + 10 * torch.rand(n, generator=gen)
+        return torch.stack([e0, e0 + length[:, None] * torch.stack([ang.cos(), ang.sin()], 1)], 1)
+
+    def desc(n: int) -> torch.Tensor:
+        cls = torch.randint(0, args.classes, (n,), generator=gen)
+        noise = F.normalize(torch.randn(n, D, generator=gen), dim=1)
+        return F.normalize(centres[cls] + 0.8 * noise, dim=1)
+
+    def perturb(d: torch.Tensor) -> torch.Tensor:
+        return F.normalize(d + 0.5 * F.normalize(torch.randn(d.shape, generator=gen), dim=1), dim=1)
+
+    def kinds(n: int) -> torch.Tensor:
+        return torch.randint(0, 3, (n,), generator=gen)
+
+    ngp, ngl = args.ground_points, args.ground_lines
+    gp, gl = disc(ngp, args.radius), lines(ngl, args.radius)
+    ground = PrimitiveSet(gp, desc(ngp), torch.arange(ngp), gl, kinds(ngl), desc(ngl), torch.arange(ngl))
+
+    yaw = float(torch.empty(1).uniform_(-math.pi, math.pi, generator=gen))
+    t = torch.tensor([400.0, -250.0]) + 200 * (torch.rand(2, generator=gen) - 0.5)
+    R = torch.tensor([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    n_patches = 5 if args.quick else args.patches
+    true_idx = int(torch.randint(0, n_patches, (1,), generator=gen))
+    nap, nal = args.aerial_points, args.aerial_lines
+    kp, kl = min(round(args.inlier_fraction * ngp), nap), min(round(args.inlier_fraction * ngl), nal)
+
+    patches = []
+    for p in range(n_patches):
+        if p == true_idx:
+            centre = t
+            sel_p = torch.randperm(ngp, generator=gen)[:kp]
+            sel_l = torch.randperm(ngl, generator=gen)[:kl]
+            pts = gp[sel_p] @ R.T + t + args.noise * torch.randn(kp, 2, generator=gen)
+            lns = gl[sel_l] @ R.T + t + args.noise * torch.randn(kl, 2, 2, generator=gen)
+            pts = torch.cat([pts, centre + disc(nap - kp, 1.2 * args.radius)])
+            lns = torch.cat([lns, centre + lines(nal - kl, 1.2 * args.radius)])
+            pd = torch.cat([perturb(ground.point_descriptors[sel_p]), desc(nap - kp)])
+            ld = torch.cat([perturb(ground.line_descriptors[sel_l]), desc(nal - kl)])
+            lk = torch.cat([ground.line_kinds[sel_l], kinds(nal - kl)])
+            # shuffle so the inliers are not the leading rows
+            op, ol = torch.randperm(nap, generator=gen), torch.randperm(nal, generator=gen)
+            pts, pd, lns, ld, lk = pts[op], pd[op], lns[ol], ld[ol], lk[ol]
+        else:
+            centre = torch.tensor([400.0, -250.0]) + 1000 * (torch.rand(2, generator=gen) - 0.5)
+            pts, lns = centre + disc(nap, 1.2 * args.radius), centre + lines(nal, 1.2 * args.radius)
+            pd, ld, lk = desc(nap), desc(nal), kinds(nal)
+        patches.append(PrimitiveSet(pts, pd, torch.arange(nap), lns, lk, ld, torch.arange(nal)))
+    return ground, patches, true_idx, (yaw, float(t[0]), float(t[1]))
+
+
+def make_config(args: argparse.Namespace):
+    from meridian_torch.matching.config import AssociationConfig, MatchConfig, ParticleConfig
+
+    return MatchConfig(
+        associations=AssociationConfig(k_prim=args.k_prim),
+        particles=ParticleConfig(n_particles=args.particles, n_iterations=args.iterations, seed=args.seed),
+        solver=args.solver,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Child modes
+# --------------------------------------------------------------------------------------------
+
+
+def _top(hyp, p: int, truth: tuple[float, float, float]) -> dict:
+    yaw, tx, ty = truth
+    ok_valid = bool(hyp.valid[p, 0])
+    theta = float(hyp.theta[p, 0])
+    t = hyp.t[p, 0].tolist()
+    dt = math.hypot(t[0] - tx, t[1] - ty)
+    dyaw = abs(math.degrees(math.remainder(theta - yaw, 2 * math.pi)))
+    return {
+        "valid": ok_valid,
+        "theta_deg": math.degrees(theta),
+        "t": t,
+        "err_t_m": dt,
+        "err_yaw_deg": dyaw,
+        "probability": float(hyp.probability[p, 0]),
+        "objective": float(hyp.objective[p, 0]),
+        "n_assoc": int(hyp.association_mask[p, 0].sum()),
+        "within_5m_5deg": ok_valid and dt <= 5.0 and dyaw <= 5.0,
+    }
+
+
+def run_match_mode(args: argparse.Namespace) -> dict:
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from meridian_torch.matching.match import match_submap
+    from meridian_torch.matching.particles import patch_seeds
+    from meridian_torch.types import stack_primitive_sets
+
+    rss_imports = _peak_rss_mib()
+    ground, patches, true_idx, truth = build_scene(args)
+    cfg = make_config(args)
+
+    warmup_s = 0.0
+    if not args.no_warmup:  # tiny problem: loads lazy code paths without touching the peak much
+        one = stack_primitive_sets([patches[0]])
+        small = type(one)(*[getattr(one, f.name)[:, :8] for f in dataclasses.fields(one)])
+        small_cfg = cfg.model_copy(
+            update={"particles": cfg.particles.model_copy(update={"n_particles": 4, "n_iterations": 10})}
+        )
+        t0 = time.perf_counter()
+        match_submap(ground, small, config=small_cfg, generator=torch.Generator().manual_seed(0))
+        warmup_s = time.perf_counter() - t0
+
+    # Do the two modes get the same per-patch seeds from one generator?
+    g1, g2 = torch.Generator().manual_seed(args.seed), torch.Generator().manual_seed(args.seed)
+    same_seeds = torch.equal(patch_seeds(len(patches), g1), torch.cat([patch_seeds(1, g2) for _ in patches]))
+
+    rss_before = _current_rss_mib()
+    peak_before = _peak_rss_mib()
+    gen = torch.Generator().manual_seed(args.seed)
+    per_patch = []
+    if args.mode == "batched":
+        batch = stack_primitive_sets(patches)
+        t0 = time.perf_counter()
+        hyp = match_submap(ground, batch, config=cfg, generator=gen)
+        elapsed = time.perf_counter() - t0
+        tops = [_top(hyp, p, truth) for p in range(len(patches))]
+    else:
+        tops = []
+        t0 = time.perf_counter()
+        for patch in patches:
+            s = time.perf_counter()
+            hyp = match_submap(ground, stack_primitive_sets([patch]), config=cfg, generator=gen)
+            per_patch.append(time.perf_counter() - s)
+            tops.append(_top(hyp, 0, truth))
+        elapsed = time.perf_counter() - t0
+    peak_after = _peak_rss_mib()
+    best = max(range(len(patches)), key=lambda p: tops[p]["objective"] if tops[p]["valid"] else -1.0)
+    return {
+        "mode": args.mode,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "n_patches": len(patches),
+        "true_idx": true_idx,
+        "truth": truth,
+        "time_s": elapsed,
+        "warmup_s": warmup_s,
+        "per_patch_s": per_patch,
+        "rss_imports_mib": rss_imports,
+        "rss_before_mib": rss_before,
+        "peak_before_mib": peak_before,
+        "peak_after_mib": peak_after,
+        "same_seeds": same_seeds,
+        "true_top": tops[true_idx],
+        "best_patch_by_objective": best,
+        "other_patches_within": sum(t["within_5m_5deg"] for p, t in enumerate(tops) if p != true_idx),
+    }
+
+
+def run_clipper_mode(args: argparse.Namespace) -> dict:
+    import torch
+
+    torch.set_num_threads(args.threads)
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    from bench_clipper import bench_clipper
+
+    t0 = time.perf_counter()
+    rows = bench_clipper(args.clipper_sizes, args.seed)
+    return {"mode": "clipper", "threads": torch.get_num_threads(), "rows": rows, "total_s": time.perf_counter() - t0}
+
+
+# --------------------------------------------------------------------------------------------
+# Parent
+# --------------------------------------------------------------------------------------------
+
+
+def _child(args: argparse.Namespace, argv: list[str], mode: str) -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), *argv, "--mode", mode]
+    env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        sys.stderr.write(proc.stdout + proc.stderr)
+        raise SystemExit(f"child --mode {mode} failed with exit code {proc.returncode}")
+    for line in proc.stdout.splitlines()[::-1]:
+        if line.startswith(RESULT_TAG):
+            return json.loads(line[len(RESULT_TAG):])
+    sys.stderr.write(proc.stdout + proc.stderr)
+    raise SystemExit(f"child --mode {mode} printed no result")
+
+
+def _fmt_top(top: dict) -> str:
+    return (
+        f"valid={top['valid']} yaw={top['theta_deg']:.2f} deg t=({top['t'][0]:.2f}, {top['t'][1]:.2f}) "
+        f"err {top['err_t_m']:.2f} m / {top['err_yaw_deg']:.2f} deg, p={top['probability']:.3f}, "
+        f"J={top['objective']:.2f}, {top['n_assoc']} assoc -> within 5 m / 5 deg: "
+        f"{'YES' if top['within_5m_5deg'] else 'NO'}"
+    )
+
+
+def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
+    n_patches = 5 if args.quick else args.patches
+    print(
+        f"bench_matching: seed {args.seed}, {args.threads} torch threads, solver {args.solver}, "
+        f"particles {args.particles}, iterations {args.iterations}, k_prim {args.k_prim}"
+    )
+    print(
+        f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
+        f"D={args.descriptor_dim}, {args.classes} classes); {n_patches} aerial patches of "
+        f"{args.aerial_points} points + {args.aerial_lines} lines; true patch holds "
+        f"{args.inlier_fraction:.0%} of the ground with {args.noise} m noise"
+    )
+    results = {}
+    for mode in ("batched", "loop"):
+        t0 = time.perf_counter()
+        results[mode] = _child(args, argv, mode)
+        print(f"  [{mode} subprocess finished in {time.perf_counter() - t0:.1f} s incl. imports]", flush=True)
+    b, lp = results["batched"], results["loop"]
+    yaw, tx, ty = b["truth"]
+    print(f"torch {b['torch']}, {b['threads']} threads in children; true patch index {b['true_idx']}, "
+          f"planted T_world_odom: yaw {math.degrees(yaw):.2f} deg, t ({tx:.2f}, {ty:.2f}) m")
+    print(f"same per-patch seeds in both modes: {b['same_seeds']}")
+    print()
+    hdr = ("mode", "time s", "s/patch", "peak MiB", "+peak MiB", "RSS0 MiB", "import MiB", "true ok", "best")
+    print("{:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>10} {:>7} {:>5}".format(*hdr))
+    for r in (b, lp):
+        print(
+            f"{r['mode']:>8} {r['time_s']:>8.2f} {r['time_s'] / r['n_patches']:>8.3f} {r['peak_after_mib']:>9.1f} "
+            f"{r['peak_after_mib'] - r['peak_before_mib']:>9.1f} {r['rss_before_mib']:>9.1f} "
+            f"{r['rss_imports_mib']:>10.1f} {str(r['true_top']['within_5m_5deg']):>7} {r['best_patch_by_objective']:>5}"
+        )
+    print(
+        "  (peak = process ru_maxrss after the stage; +peak = its growth during the stage over the peak "
+        "after imports, scene and warm-up, 0 if the stage stayed below it; RSS0 = current RSS before "
+        "the stage; best = patch with the largest top-hypothesis objective)"
+    )
+    print(f"loop / batched time ratio: {lp['time_s'] / b['time_s']:.2f}x; "
+          f"peak memory ratio batched / loop: {b['peak_after_mib'] / lp['peak_after_mib']:.2f}x")
+    if lp["per_patch_s"]:
+        pp = sorted(lp["per_patch_s"])
+        print(f"loop per-patch time: min {pp[0]:.3f} s, median {pp[len(pp) // 2]:.3f} s, max {pp[-1]:.3f} s")
+    print(f"warm-up (tiny match, excluded): batched {b['warmup_s']:.2f} s, loop {lp['warmup_s']:.2f} s")
+    for r in (b, lp):
+        print(f"{r['mode']:>8} true-patch top hypothesis: {_fmt_top(r['true_top'])}")
+        print(f"{'':>8} other patches with a top hypothesis within 5 m / 5 deg: {r['other_patches_within']}")
+
+    if args.skip_clipper:
+        return
+    print()
+    t0 = time.perf_counter()
+    c = _child(args, argv, "clipper")
+    rows = c["rows"]
+    print(f"CLIPPER solver alone (scripts/bench_clipper.py bench_clipper(sizes={args.clipper_sizes}, "
+          f"seed={args.seed}); {c['threads']} threads, subprocess {time.perf_counter() - t0:.1f} s)")
+    print(f"peak RSS before the first problem {rows[0]['baseline_rss_mib']:.1f} MiB (process peak so far per row)")
+    header = ("n", "rounding", "dtype", "time ms", "peak MiB", "iters", "sel", "prec", "recall")
+    print("{:>6} {:>9} {:>8} {:>9} {:>9} {:>6} {:>5} {:>5} {:>6}".format(*header))
+    for r in rows:
+        print(
+            f"{r['n']:>6} {r['rounding']:>9} {r['dtype']:>8} {r['time_ms']:>9.1f} {r['peak_rss_mib']:>9.1f} "
+            f"{r['iterations']:>6} {r['selected']:>5} {r['precision']:>5.2f} {r['recall']:>6.2f}"
+        )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene, the particle sampler and bench_clipper")
+    p.add_argument("--threads", type=int, default=2, help="torch intra-op threads in every child (default 2)")
+    p.add_argument("--quick", action="store_true", help="smoke run: 5 aerial patches instead of --patches")
+    p.add_argument("--patches", type=int, default=25, help="number of aerial patches P (default 25)")
+    p.add_argument("--particles", type=int, default=64, help="Langevin particles per patch (ParticleConfig default 64)")
+    p.add_argument("--iterations", type=int, default=200, help="max Langevin iterations (ParticleConfig default 200)")
+    p.add_argument("--k-prim", type=int, default=20, help="semantic neighbours per ground primitive (default 20)")
+    p.add_argument("--solver", choices=["particles", "clipper"], default="particles", help="inlier-set solver")
+    p.add_argument("--ground-points", type=int, default=60)
+    p.add_argument("--ground-lines", type=int, default=40)
+    p.add_argument("--aerial-points", type=int, default=90)
+    p.add_argument("--aerial-lines", type=int, default=60)
+    p.add_argument("--radius", type=float, default=40.0, help="radius (m) of the disc of ground primitives")
+    p.add_argument("--descriptor-dim", type=int, default=32)
+    p.add_argument("--classes", type=int, default=8, help="descriptor class centres")
+    p.add_argument("--inlier-fraction", type=float, default=0.7, help="share of ground primitives in the true patch")
+    p.add_argument("--noise", type=float, default=0.3, help="position noise (m) of the true patch's inliers")
+    p.add_argument("--clipper-sizes", type=int, nargs="+", default=[500, 1000, 2000], help="n for bench_clipper")
+    p.add_argument("--skip-clipper", action="store_true", help="do not run part (c)")
+    p.add_argument("--no-warmup", action="store_true", help="skip the tiny warm-up match before timing")
+    p.add_argument(
+        "--mode",
+        choices=["batched", "loop", "clipper"],
+        default=None,
+        help="internal: run one stage in this process and print its JSON result (the parent spawns these)",
+    )
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(argv)
+    if args.mode is None:
+        orchestrate(args, argv)
+        return
+    result = run_clipper_mode(args) if args.mode == "clipper" else run_match_mode(args)
+    print(RESULT_TAG + json.dumps(result), flush=True)
+
+
+if __name__ == "__main__":
+    main()
