@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
 from meridian_torch.geometry.se2 import rotation_matrix, se2_apply, wrap_angle
-from meridian_torch.matching.registration import RegistrationConfig, RegistrationResult, register_se2
+from meridian_torch.matching.config import RegistrationConfig
+from meridian_torch.matching.registration import RegistrationResult, register_se2
 
 DT = torch.float64
 seeds = st.integers(0, 2**31 - 1)

@@ -27,7 +27,8 @@ from torch import Tensor
 from meridian_torch.geometry.se2 import se2_matrix, wrap_angle
 from meridian_torch.matching.associations import Associations
 from meridian_torch.matching.particles import InlierSets
-from meridian_torch.matching.registration import RegistrationConfig, RegistrationResult, register_se2
+from meridian_torch.matching.config import RegistrationConfig
+from meridian_torch.matching.registration import RegistrationResult, register_se2
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = ["Hypotheses", "register_sets", "cluster_hypotheses"]

@@ -87,6 +87,7 @@ def match_submap(
         n_hypotheses=cfg.hypotheses_per_patch,
         translation_m=cfg.cluster_translation_m,
         rotation_deg=cfg.cluster_rotation_deg,
+        registration=cfg.registration,
     )
 
 

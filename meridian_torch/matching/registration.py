@@ -36,42 +36,10 @@ import math
 from dataclasses import dataclass
 
 import torch
-from pydantic import Field
-
 from meridian_torch.geometry.se2 import rotation_matrix, se2_matrix, wrap_angle
-from meridian_torch.sim.config import StrictModel
+from meridian_torch.matching.config import RegistrationConfig
 
-__all__ = ["RegistrationConfig", "RegistrationResult", "register_se2"]
-
-
-class RegistrationConfig(StrictModel):
-    """Weights and thresholds of `register_se2` (thresholds are the reference's `RegisterParams`)."""
-
-    line_direction_weight: float = Field(
-        default=25.0,
-        ge=0,
-        description="weight (m^2) of sin^2(line angle error) against a squared offset of 1 m. A segment of "
-        "length L scored by the point-to-line distances of its two endpoints weighs its direction by "
-        "(L/2)^2, so 25 m^2 stands for ~10 m lines. The reference's Arun cross-covariance implies 1 m^2, "
-        "which under-weights directions: on noisy synthetic sets (0.3 m endpoint noise) 25 m^2 cut the p90 "
-        "rotation error of lines-only sets from 2.8 to 1.8 deg and never did worse",
-    )
-    information_eps: float = Field(
-        default=0.05,
-        ge=0,
-        description="a set is degenerate unless both the rotation information (weight * m^2) and the "
-        "smallest translation information (weight) exceed this (the reference's eps)",
-    )
-    ambiguity_eps: float = Field(
-        default=0.05,
-        ge=0,
-        description="a set is ambiguous unless the second-best rotation costs this much more "
-        "(weight * m^2; the reference's dup_eps)",
-    )
-    n_angle_samples: int = Field(
-        default=32, ge=8, description="grid over [-pi, pi) that brackets the minima of f(θ)"
-    )
-    newton_iterations: int = Field(default=10, ge=1, description="bracketed Newton steps per minimum")
+__all__ = ["RegistrationResult", "register_se2"]
 
 
 @dataclass(frozen=True)
