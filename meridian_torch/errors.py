@@ -3,7 +3,7 @@ into a one-line message and exit code 1."""
 
 from __future__ import annotations
 
-__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError"]
+__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError", "ModelWeightsError"]
 
 
 class MeridianError(Exception):
@@ -24,3 +24,7 @@ class OrthophotoError(SequenceFormatError):
 
 class SimulationError(MeridianError):
     """The simulator cannot build the requested world, trajectory or sequence."""
+
+
+class ModelWeightsError(MeridianError):
+    """A model weights file is missing, unreadable or does not fit the architecture; the message names the path."""

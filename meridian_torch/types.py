@@ -12,12 +12,13 @@ Lines are stored by two endpoints plus a kind:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from enum import IntEnum
 
+import numpy as np
 import torch
 
-__all__ = ["LineKind", "PrimitiveSet", "PrimitiveBatch", "stack_primitive_sets"]
+__all__ = ["LineKind", "PrimitiveSet", "PrimitiveBatch", "stack_primitive_sets", "GroundSubmap"]
 
 
 class LineKind(IntEnum):
@@ -137,3 +138,20 @@ def stack_primitive_sets(sets: list[PrimitiveSet], min_points: int = 0, min_line
         line_descriptors=_pad([s.line_descriptors for s in sets], n_l),
         line_valid=ar_l[None, :] < counts_l[:, None],
     )
+
+
+@dataclass(frozen=True)
+class GroundSubmap:
+    """One ground submap: what the localizer needs to match it and place it in the pose graph.
+
+    Primitives are in the odom frame's x-y plane (metres); matching returns T_world_odom, and
+    T_world_base at the submap time is T_world_odom composed with `T_odom_base` (in SE(2)).
+    """
+
+    index: int  # 0, 1, 2, ... in creation order
+    time: float  # submap centre time, seconds (non-decreasing over submaps)
+    T_odom_base: np.ndarray  # (4, 4) odometry pose of the base at `time`
+    path_length_m: float  # odometry path length from the first frame to `time`
+    primitives: PrimitiveSet  # odom x-y frame
+    frame_descriptors: torch.Tensor  # (F, Dg) L2-normalized global descriptors of frames, F >= 1
+    segment_ids: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.int64))  # (S,) 3D segments used
