@@ -1,0 +1,258 @@
+"""The consistency graph between loop-closure candidates and its CLIPPER inliers (fact sheet 5.2, 5.3).
+
+Two candidates i, j (submaps at path lengths l_i, l_j) are consistent when the relative motion
+they imply, T_world_base_i^-1 T_world_base_j, agrees with the odometry's relative motion
+T_odom_base_i^-1 T_odom_base_j. With E = odom_rel^-1 cv_rel, e_yaw = |yaw(E)|, e_t = |xy(E)|
+and the noise at l = |l_j - l_i|: sigma_yaw(l) = sigma_yaw + slope_yaw * l (likewise sigma_t),
+
+    s(i, j) = sqrt(exp(-e_yaw^2 / 2 sigma_yaw^2) * exp(-e_t^2 / 2 sigma_t^2))
+              if e_yaw < sigma_yaw and e_t < sigma_t, else 0,
+
+and 0 for two candidates of one submap (at most one inlier per submap). The affinity fuses the
+qualities by a geometric mean, cbrt(s q_i q_j), with a unit diagonal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from meridian_torch.backend.candidates import LoopClosureCandidates
+from meridian_torch.config import BackendConfig
+from meridian_torch.geometry.se2 import wrap_angle
+from meridian_torch.matching.clipper import solve_clipper
+
+__all__ = [
+    "Edges",
+    "InlierSelection",
+    "PairErrors",
+    "consistency_affinity",
+    "consistency_scores",
+    "pair_errors",
+    "select_inliers",
+    "sparse_affinity",
+]
+
+
+@dataclass(frozen=True)
+class PairErrors:
+    """(N, N) pairwise quantities of a candidate set."""
+
+    yaw_error: Tensor  # radians, |yaw(E)|
+    translation_error: Tensor  # metres, |xy(E)|
+    sigma_yaw: Tensor  # radians, noise at the pair's path-length difference
+    sigma_t: Tensor  # metres
+
+
+def _relative(T_rows: Tensor, T_cols: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """x, y, yaw (R, C) of T_i^-1 T_j for rows i and columns j, elementwise (no (R, C, 3, 3) products)."""
+    yaw_r = torch.atan2(T_rows[:, 1, 0], T_rows[:, 0, 0])
+    yaw_c = torch.atan2(T_cols[:, 1, 0], T_cols[:, 0, 0])
+    dx = T_cols[None, :, 0, 2] - T_rows[:, None, 0, 2]
+    dy = T_cols[None, :, 1, 2] - T_rows[:, None, 1, 2]
+    c, s = torch.cos(yaw_r)[:, None], torch.sin(yaw_r)[:, None]
+    return c * dx + s * dy, -s * dx + c * dy, yaw_c[None, :] - yaw_r[:, None]
+
+
+def _pair_errors(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
+    ox, oy, oyaw = _relative(rows.T_odom_base, cols.T_odom_base)
+    cx, cy, cyaw = _relative(rows.T_world_base, cols.T_world_base)
+    length = (rows.path_length_m[:, None] - cols.path_length_m[None, :]).abs()
+    if not cfg.path_length_scaling:
+        length = torch.zeros_like(length)
+    return PairErrors(
+        yaw_error=wrap_angle(cyaw - oyaw).abs(),
+        translation_error=torch.hypot(cx - ox, cy - oy),
+        sigma_yaw=math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length,
+        sigma_t=cfg.sigma_t_m + cfg.sigma_t_m_per_m * length,
+    )
+
+
+def pair_errors(c: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
+    """Odometry-vs-cross-view relative motion errors and the path-length-scaled noise of all pairs.
+
+    E = odom_rel^-1 cv_rel has yaw(E) = yaw(cv_rel) - yaw(odom_rel) and |xy(E)| =
+    |xy(cv_rel) - xy(odom_rel)| (the rotation by -yaw(odom_rel) keeps the norm).
+    """
+    return _pair_errors(c, c, cfg)
+
+
+def _block_affinity(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
+    """(R, C) fused affinity of rows (first of the pair) against columns, no diagonal handling."""
+    e = _pair_errors(rows, cols, cfg)
+    inside = (e.yaw_error < e.sigma_yaw) & (e.translation_error < e.sigma_t)
+    log_k = -0.5 * (e.yaw_error / e.sigma_yaw).square() - 0.5 * (e.translation_error / e.sigma_t).square()
+    s = torch.where(inside, torch.exp(0.5 * log_k), torch.zeros_like(log_k))
+    s = s.masked_fill(rows.submap_index[:, None] == cols.submap_index[None, :], 0.0)
+    if cfg.fuse_quality:
+        s = (s * rows.quality[:, None] * cols.quality[None, :]).pow(1.0 / 3.0)
+    return s.masked_fill(s <= cfg.affinity_eps, 0.0)
+
+
+def consistency_scores(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
+    """(N, N) symmetric pairwise consistency s(i, j) in [0, 1]; 0 on the diagonal and within a submap."""
+    raw = cfg.model_copy(update={"fuse_quality": False, "affinity_eps": 0.0})
+    # |xy(E)| of (i, j) and (j, i) differ slightly (E_ji is E_ij seen from the other end); score
+    # each pair once, as i < j, like the reference's pair loop.
+    s = _block_affinity(c, c, raw).triu(1)
+    return s + s.T
+
+
+def consistency_affinity(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
+    """(N, N) dense CLIPPER affinity: cbrt(s q_i q_j) (or s), <= affinity_eps dropped, unit diagonal."""
+    M = _block_affinity(c, c, cfg).triu(1)
+    M = M + M.T
+    M.diagonal().fill_(1.0)
+    return M
+
+
+Edges = tuple[Tensor, Tensor, Tensor]  # (i, j, value) with i < j: the non-zero off-diagonal affinities
+
+
+def sparse_affinity(
+    c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: int = 0, block_rows: int = 512
+) -> Edges:
+    """Non-zero off-diagonal affinities (i < j) as (i, j, value), computed in row blocks.
+
+    Only pairs with j >= `first_new` are scored (the others are known from an earlier call on a
+    prefix of the same candidates). Memory stays O(block_rows * N + non-zeros); the graph is very
+    sparse (wrong candidates rarely agree).
+    """
+    n = len(c)
+    found_i, found_j = [torch.zeros(0, dtype=torch.int64)], [torch.zeros(0, dtype=torch.int64)]
+    found_v = [torch.zeros(0, dtype=torch.float64)]
+    for a in range(0, n, block_rows):
+        b = min(a + block_rows, n)
+        col0 = max(a, first_new)
+        if col0 >= n:
+            continue
+        M = _block_affinity(c.select(torch.arange(a, b)), c.select(torch.arange(col0, n)), cfg)
+        M = M.triu(a - col0 + 1)  # global column col0 + k > global row a + r
+        i, j = torch.nonzero(M, as_tuple=True)
+        found_i.append(i + a)
+        found_j.append(j + col0)
+        found_v.append(M[i, j])
+    return torch.cat(found_i), torch.cat(found_j), torch.cat(found_v)
+
+
+@dataclass(frozen=True)
+class InlierSelection:
+    inliers: Tensor  # (N,) bool, at most one per submap
+    score: float  # CLIPPER density x'Mx / x'x of the selected set (0 when empty)
+    edges: Edges  # the consistency graph of all N candidates (reusable via `known_edges`)
+
+    @property
+    def count(self) -> int:
+        return int(self.inliers.sum())
+
+
+def _solve(
+    n: int,
+    edges: tuple[Tensor, Tensor, Tensor],
+    index: Tensor,
+    cfg: BackendConfig,
+    generator: torch.Generator | None,
+) -> tuple[Tensor, float]:
+    """CLIPPER on the candidates `index` (sorted) from the sparse edges; (selected indices, density)."""
+    i, j, v = edges
+    local = torch.full((n,), -1, dtype=torch.int64)
+    local[index] = torch.arange(len(index))
+    li, lj = local[i], local[j]
+    keep = (li >= 0) & (lj >= 0)
+    M = torch.zeros(len(index), len(index), dtype=v.dtype)
+    M[li[keep], lj[keep]] = v[keep]
+    M = M + M.T
+    M.diagonal().fill_(1.0)
+    result = solve_clipper(M, generator=generator, cfg=cfg.clipper)
+    return index[result.inliers[0]], float(result.score[0])
+
+
+def _greedy_clique(n: int, edges: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, float]:
+    """A greedy clique grown from the best-connected candidate: (indices, density x'Mx / x'x)."""
+    i, j, v = edges
+    degree = torch.zeros(n, dtype=v.dtype).index_add_(0, i, v).index_add_(0, j, v)
+    seed = int(torch.argmax(degree))
+    nbrs = torch.unique(torch.cat([j[i == seed], i[j == seed]]))
+    members = torch.cat([torch.tensor([seed]), nbrs])
+    local = torch.full((n,), -1, dtype=torch.int64)
+    local[members] = torch.arange(len(members))
+    li, lj = local[i], local[j]
+    keep = (li >= 0) & (lj >= 0)
+    W = torch.zeros(len(members), len(members), dtype=v.dtype)
+    W[li[keep], lj[keep]] = v[keep]
+    W = W + W.T
+    clique = [0]
+    allowed = W[0] > 0
+    while allowed.any():
+        gain = torch.where(allowed, W[clique].sum(0), torch.full_like(W[0], -1.0))
+        k = int(torch.argmax(gain))
+        clique.append(k)
+        allowed &= W[k] > 0
+        allowed[clique] = False
+    sub = W[clique][:, clique]
+    return members[clique], float((len(clique) + sub.sum()) / len(clique))
+
+
+def _peel(n: int, edges: tuple[Tensor, Tensor, Tensor], lower_bound: float) -> Tensor:
+    """Candidates that can belong to a clique of density >= lower_bound (sorted indices).
+
+    In the densest clique S every member v has 1 + 2 sum_{u in S} M_uv >= density(S) (else
+    dropping v would make it denser), so a candidate whose total weighted degree is below
+    (lower_bound - 1) / 2 cannot be in it; removing it lowers its neighbours' degrees: repeat.
+    """
+    i, j, v = edges
+    alive = torch.zeros(n, dtype=torch.bool)
+    alive[i] = True
+    alive[j] = True
+    while True:
+        e = alive[i] & alive[j]
+        degree = torch.zeros(n, dtype=v.dtype).index_add_(0, i[e], v[e]).index_add_(0, j[e], v[e])
+        drop = alive & (1.0 + 2.0 * degree < lower_bound - 1e-9)
+        if not drop.any():
+            return torch.nonzero(alive).flatten()
+        alive &= ~drop
+
+
+def select_inliers(
+    c: LoopClosureCandidates,
+    cfg: BackendConfig,
+    generator: torch.Generator | None = None,
+    *,
+    known_edges: tuple[int, Edges] | None = None,
+) -> InlierSelection:
+    """The densest mutually consistent candidate set by CLIPPER.
+
+    Only candidates that can belong to a clique at least as dense as a greedy one enter the solve
+    (`_peel`; exact for the densest clique, and it removes the many candidates without consistent
+    partners); without any edge the best-quality candidate (then the most probable) is the single
+    inlier. Pools still larger than `cfg.max_clipper_candidates` are split into even chunks, each
+    solved on its own; the pooled chunk inliers are solved once more (reference chunking, fact
+    sheet 5.3). `known_edges` = (n_known, edges of the first n_known candidates of `c`) skips
+    scoring those pairs again (a pool that only grew since).
+    """
+    n = len(c)
+    inliers = torch.zeros(n, dtype=torch.bool)
+    first_new, known = known_edges if known_edges is not None else (0, None)
+    if not 0 <= first_new <= n:
+        raise ValueError(f"known_edges covers {first_new} candidates, the set has {n}")
+    new = sparse_affinity(c, cfg, first_new=first_new)
+    edges = new if known is None else tuple(torch.cat([k, e]) for k, e in zip(known, new))
+    if n == 0:
+        return InlierSelection(inliers, 0.0, edges)
+    if len(edges[0]) == 0:
+        best = int(torch.argmax(c.quality + 1e-9 * c.probability))
+        inliers[best] = True
+        return InlierSelection(inliers, 1.0, edges)
+    greedy, greedy_density = _greedy_clique(n, edges)
+    index = _peel(n, edges, greedy_density)
+    if len(index) > cfg.max_clipper_candidates:
+        chunks = torch.tensor_split(index, len(index) // cfg.max_clipper_candidates + 1)
+        index = torch.cat([_solve(n, edges, ch, cfg, generator)[0] for ch in chunks]).sort().values
+    selected, score = _solve(n, edges, index, cfg, generator)
+    if score < greedy_density:  # a failed solve never does worse than the greedy clique
+        selected, score = greedy, greedy_density
+    inliers[selected] = True
+    return InlierSelection(inliers, score, edges)

@@ -1,0 +1,495 @@
+"""Incremental and offline cross-view localization (fact sheet 5.5, 5.6).
+
+States, per new ground submap:
+- "pre" (no global fix yet): match the submap against its place-recognition patches with free
+  rotation, pool its candidates, CLIPPER on the pool. With >= `attempt_min_inliers` inliers (and
+  at least `fix_min_inliers` submaps, else the gate cannot hold) an **attempt** follows: pose graph
+  on the pool's inliers -> rough trajectory -> re-match every submap so far against the patches
+  near its rough position with the rotation prior -> CLIPPER on these fresh candidates. The fix is
+  **committed** when they give >= `fix_min_inliers` inliers making up >= `fix_min_inlier_fraction`
+  of the submaps so far: the fresh candidates replace the pool, state "post". A failed attempt
+  leaves the pool untouched.
+- "post": the submap is matched with the rotation prior against the patches near its pose
+  predicted from the last optimized pose carried forward by odometry; its candidates join the
+  pool; CLIPPER + pose graph; accepted inliers are committed (the other candidates of their
+  submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
+
+The online estimate at a frame = the anchor (last optimized pose of the latest update available
+at that frame's time) carried forward by odometry. `finalize` solves the final pool once more over
+every frame and, with `final_rematch`, re-matches every submap with the rotation prior near that
+trajectory (offline pass 2), keeping pass 2 when it passes the fix gate.
+
+Output poses are SE(3): the optimized planar correction T_world_odom(t) (x, y, yaw) composed
+with the full odometry pose, so z, roll and pitch are the odometry's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+import torch
+
+from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses, se2_from_se3
+from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
+from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph
+from meridian_torch.config import MeridianConfig
+from meridian_torch.errors import ConfigError
+from meridian_torch.geometry.trajectory import Trajectory
+from meridian_torch.io.map_file import AerialMap
+from meridian_torch.matching.hypotheses import Hypotheses
+from meridian_torch.matching.match import match_submap
+from meridian_torch.matching.place_recognition import select_patches, stack_similarity
+from meridian_torch.types import GroundSubmap, PrimitiveBatch, PrimitiveSet
+
+__all__ = ["LocalizationResult", "Localizer", "LocalizerEvent", "Matcher", "lift_se2", "localize_offline"]
+
+
+class Matcher(Protocol):
+    def __call__(
+        self,
+        ground: PrimitiveSet,
+        aerial: PrimitiveBatch,
+        *,
+        rotation_prior: torch.Tensor | float | None,
+        config: object,
+        generator: torch.Generator | None,
+    ) -> Hypotheses: ...
+
+
+@dataclass(frozen=True)
+class LocalizerEvent:
+    """What happened when one submap was added (for progress output and the run log)."""
+
+    submap_index: int
+    time: float
+    state: Literal["pre", "post"]  # state after this submap
+    n_patches: int  # patches this submap was matched against
+    n_hypotheses: int  # its candidates (valid hypotheses with enough associations)
+    n_candidates: int  # candidates in the pool
+    n_inliers: int  # inliers of the pool after this submap
+    attempted: bool  # a fix attempt ran
+    fix_committed: bool  # the global fix was committed on this submap
+    seconds: float
+
+
+@dataclass(frozen=True)
+class LocalizationResult:
+    """Final and incremental trajectories at every frame time; NaN where there is no estimate."""
+
+    frame_times: np.ndarray  # (N,)
+    T_world_base: np.ndarray  # (N, 4, 4) final optimized poses (NaN when not localized)
+    covariance: np.ndarray | None  # (N, 3, 3) marginal covariance of world (x, y, yaw), or None
+    T_world_base_incremental: np.ndarray  # (N, 4, 4) online estimate, NaN before the fix
+    localized: bool  # the final inlier set passes the fix gate
+    inliers: LoopClosureCandidates  # the final inlier loop closures
+    fix_submap_index: int | None  # submap on which the online fix was committed
+    fix_time: float | None  # time at which that fix became available
+    submap_hypotheses: dict[int, LoopClosureCandidates]  # candidates of each submap's first matching
+    submap_matching_mode: dict[int, str]  # how: "place_recognition" (before the fix) or "rotation_prior"
+    events: list[LocalizerEvent]
+    timings: dict[str, float]  # seconds per stage: matching, consistency, pose_graph
+
+    @property
+    def final_trajectory(self) -> Trajectory | None:
+        return Trajectory(self.frame_times, self.T_world_base) if self.localized else None
+
+    @property
+    def incremental_trajectory(self) -> Trajectory | None:
+        """The online estimate from the fix on (None without a fix)."""
+        ok = np.isfinite(self.T_world_base_incremental[:, 0, 0])
+        if not ok.any():
+            return None
+        return Trajectory(self.frame_times[ok], self.T_world_base_incremental[ok])
+
+
+def lift_se2(T_world_base_se2: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) planar world poses + (N, 4, 4) odometry poses -> (N, 4, 4) T_world_base.
+
+    The planar correction T_world_odom = T_world_base_se2 * SE2(T_odom_base)^-1 (x, y, yaw) is
+    applied to the full odometry pose: x, y and yaw come from the SE(2) pose, z, roll and pitch
+    from the odometry.
+    """
+    correction = T_world_base_se2 @ np.linalg.inv(se2_from_se3(T_odom_base).numpy())
+    C = np.tile(np.eye(4), (len(correction), 1, 1))
+    C[:, :2, :2] = correction[:, :2, :2]
+    C[:, :2, 3] = correction[:, :2, 2]
+    return C @ T_odom_base
+
+
+def _patch_subset(batch: PrimitiveBatch, index: torch.Tensor) -> PrimitiveBatch:
+    index = index.to(batch.points_xy.device)
+    return PrimitiveBatch(**{name: getattr(batch, name)[index] for name in batch.__dataclass_fields__})
+
+
+@dataclass
+class _Update:
+    available_time: float
+    T_world_odom: np.ndarray  # (3, 3) anchor: last optimized pose * its odometry pose^-1
+
+
+@dataclass
+class _Timer:
+    seconds: dict[str, float] = field(
+        default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
+    )
+
+    def add(self, stage: str, start: float) -> None:
+        self.seconds[stage] += time.perf_counter() - start
+
+
+class Localizer:
+    """Cross-view localizer over one sequence; feed submaps in order with `add_submap`.
+
+    Args:
+        aerial_map: the aerial map (patches, primitives in world metres, global descriptors).
+        cfg: the full config (`matching` for matching and patch selection, `backend` here).
+        odometry: T_odom_base over time; must cover `frame_times`.
+        frame_times: (N,) strictly increasing frame timestamps; one pose-graph node per frame.
+        seed: seeds matching and CLIPPER (default `cfg.matching.particles.seed`); one seed gives
+            identical results.
+        incremental: False = offline mode: `add_submap` only matches with place recognition and
+            pools; everything is solved in `finalize` (pass 1 + pass 2).
+        matcher: the matching function (default `match_submap`; tests may inject their own).
+    """
+
+    def __init__(
+        self,
+        aerial_map: AerialMap,
+        cfg: MeridianConfig,
+        odometry: Trajectory,
+        frame_times: np.ndarray,
+        *,
+        seed: int | None = None,
+        incremental: bool = True,
+        matcher: Matcher | None = None,
+    ) -> None:
+        if cfg.matching.place_recognition.mode == "near":
+            raise ConfigError(
+                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'global' or 'exhaustive' "
+                "for localization (the localizer switches to 'near' by itself after the fix)"
+            )
+        frame_times = np.asarray(frame_times, dtype=np.float64)
+        if frame_times.ndim != 1 or len(frame_times) == 0 or np.any(np.diff(frame_times) <= 0):
+            raise ValueError("frame_times must be a non-empty, strictly increasing 1-D array")
+        if not odometry.covers(frame_times):
+            raise ValueError("the odometry does not cover the frame times")
+        self.aerial_map = aerial_map
+        self.cfg = cfg
+        self.frame_times = frame_times
+        self.T_odom_base = odometry.interpolate(frame_times)  # (N, 4, 4)
+        self._odom_se2 = se2_from_se3(self.T_odom_base).numpy()  # (N, 3, 3)
+        self.incremental = incremental
+        self._matcher: Matcher = matcher or match_submap
+        seed = cfg.matching.particles.seed if seed is None else seed
+        device = aerial_map.primitives.points_xy.device
+        self._generator = torch.Generator(device=device).manual_seed(seed)
+        self._clipper_generator = torch.Generator().manual_seed(seed)
+        self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
+        self.submaps: list[GroundSubmap] = []
+        self._nodes: list[int] = []  # pose-graph node (frame) of every submap
+        self.submap_hypotheses: dict[int, LoopClosureCandidates] = {}
+        self.submap_matching_mode: dict[int, str] = {}
+        self.pool = LoopClosureCandidates.empty()
+        self._pool_edges: tuple[int, Edges] | None = (
+            None  # consistency graph of the pool's first n candidates
+        )
+        self.state: Literal["pre", "post"] = "pre"
+        self._updates: list[_Update] = []
+        self.fix_submap_index: int | None = None
+        self.fix_time: float | None = None
+        self.events: list[LocalizerEvent] = []
+        self._timer = _Timer()
+        # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
+        self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
+
+    # ------------------------------------------------------------------ matching
+    def _node_of(self, t: float) -> int:
+        k = int(np.searchsorted(self.frame_times, t))
+        if k == len(self.frame_times) or (k > 0 and t - self.frame_times[k - 1] <= self.frame_times[k] - t):
+            k -= 1
+        return k
+
+    def _match(
+        self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | None
+    ) -> LoopClosureCandidates:
+        if len(patches) == 0:
+            return LoopClosureCandidates.empty()
+        start = time.perf_counter()
+        aerial = _patch_subset(self.aerial_map.primitives, patches)
+        ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
+        hyps = self._matcher(
+            ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator
+        )
+        self._timer.add("matching", start)
+        return candidates_from_hypotheses(
+            hyps, submap, patches, min_associations=self.cfg.backend.min_associations
+        )
+
+    def _place_recognition_patches(self, submap: GroundSubmap) -> torch.Tensor:
+        pr = self.cfg.matching.place_recognition
+        n_patches = len(self.aerial_map)
+        similarity = None
+        if pr.mode == "global":
+            frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
+            valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
+            similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
+        idx, ok = select_patches(pr, 1, n_patches, similarity=similarity)
+        return idx[0][ok[0]].cpu()
+
+    def _near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:
+        """Patches near each predicted position (S, 2), largest disk overlap first."""
+        pr = self.cfg.matching.place_recognition.model_copy(update={"mode": "near"})
+        idx, ok = select_patches(
+            pr,
+            len(xy),
+            len(self.aerial_map),
+            predicted_xy=torch.as_tensor(xy, dtype=torch.float64),
+            patch_bounds_xy=self._patch_bounds,
+        )
+        return [i[o] for i, o in zip(idx, ok)]
+
+    def _rematch(self, T_world_base_nodes: np.ndarray, submaps: list[GroundSubmap]) -> LoopClosureCandidates:
+        """Every submap matched near its pose in `T_world_base_nodes` (per node) with the rotation prior."""
+        nodes = [self._node_of(s.time) for s in submaps]
+        T_world_base = T_world_base_nodes[nodes]
+        T_world_odom = T_world_base @ np.linalg.inv(self._odom_se2[nodes])
+        priors = np.arctan2(T_world_odom[:, 1, 0], T_world_odom[:, 0, 0])
+        patches = self._near_patches(T_world_base[:, :2, 2])
+        return LoopClosureCandidates.concat(
+            [self._match(s, p, float(r)) for s, p, r in zip(submaps, patches, priors)]
+        )
+
+    # ------------------------------------------------------------------ solving
+    def _inliers(self, candidates: LoopClosureCandidates) -> InlierSelection:
+        start = time.perf_counter()
+        sel = select_inliers(candidates, self.cfg.backend, self._clipper_generator)
+        self._timer.add("consistency", start)
+        return sel
+
+    def _pool_inliers(self) -> InlierSelection:
+        """CLIPPER on the pool, scoring only the pairs of candidates appended since the last call."""
+        start = time.perf_counter()
+        sel = select_inliers(
+            self.pool, self.cfg.backend, self._clipper_generator, known_edges=self._pool_edges
+        )
+        self._pool_edges = (len(self.pool), sel.edges)
+        self._timer.add("consistency", start)
+        return sel
+
+    def _set_pool(self, pool: LoopClosureCandidates, edges: Edges | None) -> None:
+        self.pool = pool
+        self._pool_edges = (len(pool), edges) if edges is not None else None
+
+    def _gate(self, n_inliers: int, n_submaps: int) -> bool:
+        b = self.cfg.backend
+        return n_inliers >= b.fix_min_inliers and n_inliers >= b.fix_min_inlier_fraction * n_submaps
+
+    def _optimize(
+        self, inliers: LoopClosureCandidates, n_nodes: int, covariance: bool = False
+    ) -> PoseGraphSolution:
+        start = time.perf_counter()
+        nodes = np.array([self._node_of(float(t)) for t in inliers.time], dtype=np.int64)
+        # Move each measurement from the submap time to its node's frame time along the odometry.
+        T_world_odom = inliers.T_world_base.numpy() @ np.linalg.inv(inliers.T_odom_base.numpy())
+        priors = T_world_odom @ self._odom_se2[nodes]
+        sol = optimize_pose_graph(
+            self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance
+        )
+        self._timer.add("pose_graph", start)
+        return sol
+
+    def _anchor(self, sol: PoseGraphSolution, available_time: float) -> None:
+        last = len(sol.T_world_base) - 1
+        self._updates.append(
+            _Update(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]))
+        )
+
+    def _commit(self, inliers: torch.Tensor) -> None:
+        """Keep only the inlier of every submap that has one, except for the most recent submaps."""
+        if not self.cfg.backend.commit_accepted_inliers:
+            return
+        latest = self.submaps[-1].index
+        committed = self.pool.submap_index[inliers]
+        committed = committed[committed <= latest - self.cfg.backend.commit_delay_submaps]
+        keep = ~(torch.isin(self.pool.submap_index, committed) & ~inliers)
+        edges = None
+        if self._pool_edges is not None and self._pool_edges[0] == len(self.pool):
+            i, j, v = self._pool_edges[1]
+            both = keep[i] & keep[j]
+            new_index = torch.cumsum(keep, 0) - 1
+            edges = (new_index[i[both]], new_index[j[both]], v[both])
+        self._set_pool(self.pool.select(keep), edges)
+
+    def _attempt_candidates(self, sel: InlierSelection, n_nodes: int) -> LoopClosureCandidates:
+        """Re-match every submap so far near the rough trajectory of the pre-fix inliers `sel`.
+
+        The pre-fix pool only grows, so inlier indices identify the inlier set. When it equals the
+        last failed attempt's, the rough poses of the earlier submaps are unchanged (the new frames
+        only extend the graph's free tail), and so are their re-match candidates: only the new
+        submaps are matched.
+        """
+        key = tuple(torch.nonzero(sel.inliers).flatten().tolist())
+        rough = self._optimize(self.pool.select(sel.inliers), n_nodes)
+        cached = self._attempt_cache
+        if cached is not None and cached[0] == key:
+            done, fresh = cached[1], cached[2]
+            fresh = LoopClosureCandidates.concat(
+                [fresh, self._rematch(rough.T_world_base, self.submaps[done:])]
+            )
+        else:
+            fresh = self._rematch(rough.T_world_base, self.submaps)
+        self._attempt_cache = (key, len(self.submaps), fresh)
+        return fresh
+
+    # ------------------------------------------------------------------ public API
+    def add_submap(self, submap: GroundSubmap, available_time: float | None = None) -> LocalizerEvent:
+        """Process one new submap; `available_time` = when it was complete (default its time).
+
+        The online estimate of frames from `available_time` on uses the result of this call.
+        """
+        start = time.perf_counter()
+        if self.submaps and submap.time < self.submaps[-1].time:
+            raise ValueError(f"submap {submap.index}: time {submap.time} before the previous submap's")
+        available_time = float(submap.time if available_time is None else available_time)
+        self.submaps.append(submap)
+        self._nodes.append(self._node_of(submap.time))
+        n_nodes = self._node_of(available_time) + 1
+        attempted = committed = False
+        if self.state == "pre":
+            patches = self._place_recognition_patches(submap)
+            new = self._match(submap, patches, None)
+            self.submap_hypotheses[submap.index] = new
+            self.submap_matching_mode[submap.index] = "place_recognition"
+            self.pool = LoopClosureCandidates.concat([self.pool, new])
+            sel = self._pool_inliers() if self.incremental else None
+            n_inliers = sel.count if sel is not None else 0
+            b = self.cfg.backend
+            if (
+                sel is not None
+                and n_inliers >= b.attempt_min_inliers
+                and len(self.submaps) >= b.fix_min_inliers
+            ):
+                attempted = True
+                fresh = self._attempt_candidates(sel, n_nodes)
+                sel2 = self._inliers(fresh)
+                if self._gate(sel2.count, len(self.submaps)):
+                    committed = True
+                    self._set_pool(fresh, sel2.edges)
+                    self.state = "post"
+                    self.fix_submap_index, self.fix_time = submap.index, available_time
+                    self._anchor(self._optimize(fresh.select(sel2.inliers), n_nodes), available_time)
+                    self._commit(sel2.inliers)
+                    n_inliers = sel2.count
+        else:
+            anchor = self._updates[-1].T_world_odom
+            predicted = anchor @ self._odom_se2[self._nodes[-1]]
+            patches = self._near_patches(predicted[None, :2, 2])[0]
+            prior = float(np.arctan2(anchor[1, 0], anchor[0, 0]))
+            new = self._match(submap, patches, prior)
+            self.submap_hypotheses[submap.index] = new
+            self.submap_matching_mode[submap.index] = "rotation_prior"
+            self.pool = LoopClosureCandidates.concat([self.pool, new])
+            sel = self._pool_inliers()
+            n_inliers = sel.count
+            if n_inliers:
+                self._anchor(self._optimize(self.pool.select(sel.inliers), n_nodes), available_time)
+                self._commit(sel.inliers)
+        event = LocalizerEvent(
+            submap_index=submap.index,
+            time=float(submap.time),
+            state=self.state,
+            n_patches=len(patches),
+            n_hypotheses=len(new),
+            n_candidates=len(self.pool),
+            n_inliers=n_inliers,
+            attempted=attempted,
+            fix_committed=committed,
+            seconds=time.perf_counter() - start,
+        )
+        self.events.append(event)
+        return event
+
+    def online_estimate(self) -> np.ndarray:
+        """(N, 4, 4) T_world_base the system had online at every frame time (NaN before the fix).
+
+        Frames after the latest update use that update (carried forward by odometry).
+        """
+        out = np.full((len(self.frame_times), 4, 4), np.nan)
+        if not self._updates:
+            return out
+        update_times = np.array([u.available_time for u in self._updates])
+        which = np.searchsorted(update_times, self.frame_times, side="right") - 1
+        ok = which >= 0
+        anchors = np.stack([u.T_world_odom for u in self._updates])[which[ok]]
+        out[ok] = lift_se2(anchors @ self._odom_se2[ok], self.T_odom_base[ok])
+        return out
+
+    def finalize(self, progress: Callable[[str], None] | None = None) -> LocalizationResult:
+        """Final solve over every frame (+ pass 2 re-match when `backend.final_rematch`)."""
+        b = self.cfg.backend
+        n = len(self.frame_times)
+        n_sub = len(self.submaps)
+        best: tuple[PoseGraphSolution, LoopClosureCandidates] | None = None
+        sel = self._pool_inliers()
+        if sel.count:
+            inliers = self.pool.select(sel.inliers)
+            sol = self._optimize(inliers, n)
+            if self._gate(sel.count, n_sub):
+                best = (sol, inliers)
+            if b.final_rematch:
+                if progress:
+                    progress(f"final pass: re-matching {n_sub} submaps with the rotation prior")
+                fresh = self._rematch(sol.T_world_base, self.submaps)
+                sel2 = self._inliers(fresh)
+                if self._gate(sel2.count, n_sub):
+                    inliers2 = fresh.select(sel2.inliers)
+                    best = (self._optimize(inliers2, n), inliers2)
+        localized = best is not None
+        if localized:
+            inliers = best[1]
+            sol = self._optimize(inliers, n, covariance=b.covariance) if b.covariance else best[0]
+            T_final = lift_se2(sol.T_world_base, self.T_odom_base)
+            cov = sol.covariance
+        else:
+            inliers = LoopClosureCandidates.empty()
+            T_final = np.full((n, 4, 4), np.nan)
+            cov = None
+        return LocalizationResult(
+            frame_times=self.frame_times,
+            T_world_base=T_final,
+            covariance=cov,
+            T_world_base_incremental=self.online_estimate(),
+            localized=localized,
+            inliers=inliers,
+            fix_submap_index=self.fix_submap_index,
+            fix_time=self.fix_time,
+            submap_hypotheses=dict(self.submap_hypotheses),
+            submap_matching_mode=dict(self.submap_matching_mode),
+            events=list(self.events),
+            timings=dict(self._timer.seconds),
+        )
+
+
+def localize_offline(
+    aerial_map: AerialMap,
+    cfg: MeridianConfig,
+    odometry: Trajectory,
+    frame_times: np.ndarray,
+    submaps: list[GroundSubmap],
+    *,
+    seed: int | None = None,
+    matcher: Matcher | None = None,
+    progress: Callable[[LocalizerEvent], None] | None = None,
+) -> LocalizationResult:
+    """Offline localization: every submap against its place-recognition patches, then pass 1
+    (CLIPPER + pose graph) and pass 2 (re-match with the rotation prior) in `finalize`."""
+    loc = Localizer(aerial_map, cfg, odometry, frame_times, seed=seed, incremental=False, matcher=matcher)
+    for submap in submaps:
+        event = loc.add_submap(submap)
+        if progress:
+            progress(event)
+    return loc.finalize()

@@ -1,0 +1,118 @@
+"""The pose graph in GTSAM (the only module that imports gtsam; fact sheet 5.4).
+
+One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between consecutive
+frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time
+to its submap. Plain Gaussian noise (CLIPPER removed the outliers already), Levenberg-Marquardt
+with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
+Poses in and out are numpy float64 (..., 3, 3) SE(2) matrices.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from meridian_torch.config import BackendConfig
+
+__all__ = ["PoseGraphSolution", "align_odometry", "optimize_pose_graph"]
+
+
+def _se2(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.zeros(np.shape(yaw) + (3, 3))
+    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2] = c, -s, x
+    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2] = s, c, y
+    T[..., 2, 2] = 1.0
+    return T
+
+
+def _yaw(T: np.ndarray) -> np.ndarray:
+    return np.arctan2(T[..., 1, 0], T[..., 0, 0])
+
+
+def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
+    """The rigid T_world_odom (3, 3) that best maps odometry poses (K, 3, 3) onto measured world poses.
+
+    Yaw = circular mean of the per-measurement yaw offsets; translation = least squares given that
+    yaw (mean of p_world - R p_odom). The reference averages each measurement's T_world_odom
+    instead, which equals this when the yaws agree.
+    """
+    dyaw = _yaw(T_world_base) - _yaw(T_odom_base)
+    yaw = math.atan2(np.sin(dyaw).mean(), np.cos(dyaw).mean())
+    R = _se2(0.0, 0.0, np.array(yaw))[:2, :2]
+    t = (T_world_base[:, :2, 2] - T_odom_base[:, :2, 2] @ R.T).mean(axis=0)
+    return _se2(t[0], t[1], np.array(yaw))
+
+
+@dataclass(frozen=True)
+class PoseGraphSolution:
+    T_world_base: np.ndarray  # (N, 3, 3) optimized pose of every node
+    covariance: np.ndarray | None  # (N, 3, 3) marginal covariance of (x, y, yaw), world-aligned axes
+    initial_error: float  # graph error at the initial values
+    final_error: float
+    iterations: int
+
+
+def optimize_pose_graph(
+    T_odom_base: np.ndarray,
+    prior_nodes: np.ndarray,
+    T_world_base_priors: np.ndarray,
+    cfg: BackendConfig,
+    *,
+    covariance: bool = False,
+) -> PoseGraphSolution:
+    """Optimize N nodes (odometry poses (N, 3, 3)) with K >= 1 loop-closure priors on `prior_nodes` (K,).
+
+    `covariance=True` also returns every node's marginal covariance, rotated from GTSAM's body
+    tangent space into world-aligned (x east, y north, yaw) axes.
+    """
+    import gtsam
+
+    T_odom_base = np.asarray(T_odom_base, dtype=np.float64)
+    prior_nodes = np.asarray(prior_nodes, dtype=np.int64)
+    T_world_base_priors = np.asarray(T_world_base_priors, dtype=np.float64)
+    n = len(T_odom_base)
+    if len(prior_nodes) == 0 or n == 0:
+        raise ValueError("optimize_pose_graph needs at least one node and one loop-closure prior")
+    if prior_nodes.min() < 0 or prior_nodes.max() >= n:
+        raise ValueError(f"prior nodes must lie in [0, {n}), got {prior_nodes.min()}..{prior_nodes.max()}")
+
+    def pose(T: np.ndarray) -> gtsam.Pose2:
+        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(_yaw(T)))
+
+    graph = gtsam.NonlinearFactorGraph()
+    odom_noise = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([cfg.odom_trans_sigma_m, cfg.odom_trans_sigma_m, math.radians(cfg.odom_rot_sigma_deg)])
+    )
+    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
+    )
+    steps = np.linalg.inv(T_odom_base[:-1]) @ T_odom_base[1:]
+    for k, step in enumerate(steps):
+        graph.add(gtsam.BetweenFactorPose2(k, k + 1, pose(step), odom_noise))
+    for node, T in zip(prior_nodes, T_world_base_priors):
+        graph.add(gtsam.PriorFactorPose2(int(node), pose(T), prior_noise))
+
+    T_world_odom = align_odometry(T_world_base_priors, T_odom_base[prior_nodes])
+    initial = gtsam.Values()
+    for k, T in enumerate(T_world_odom @ T_odom_base):
+        initial.insert(k, pose(T))
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams())
+    result = optimizer.optimize()
+    xyt = np.array([[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(n))])
+    cov = None
+    if covariance:
+        marginals = gtsam.Marginals(graph, result)
+        local = np.stack([marginals.marginalCovariance(k) for k in range(n)])
+        rot = _se2(0.0, 0.0, xyt[:, 2])  # body tangent (x, y, theta) -> world-aligned axes
+        rot[:, 2, 2] = 1.0
+        cov = rot @ local @ np.swapaxes(rot, 1, 2)
+    return PoseGraphSolution(
+        T_world_base=_se2(xyt[:, 0], xyt[:, 1], xyt[:, 2]),
+        covariance=cov,
+        initial_error=float(graph.error(initial)),
+        final_error=float(graph.error(result)),
+        iterations=int(optimizer.iterations()),
+    )

@@ -1,0 +1,294 @@
+"""Outputs of a localization run (FORMAT.md "Outputs of a localization run"), written atomically.
+
+Files in the output folder:
+- `trajectory.tum`: final optimized T_world_base at every frame time (only when localized);
+- `trajectory_incremental.tum`: the online estimate at each frame time from the fix on;
+- `covariance.csv`: per frame of trajectory.tum, the marginal covariance of (x, y, yaw) in
+  world-aligned axes (m^2, m rad, rad^2): `timestamp,xx,xy,xyaw,yy,yyaw,yawyaw`;
+- `loop_closures.csv`: the final inlier loop closures (measured T_world_base at the submap time);
+- `hypotheses.csv`: every submap's candidates from its first matching, for registration metrics;
+- `submaps.csv`: one row per processed submap (the localizer's events);
+- `localization.json`: summary (localized, fix, counts, per-stage seconds, frame count);
+- with a CRS: `trajectory_latlon.csv` (`timestamp,latitude,longitude`, WGS84) and
+  `trajectory.geojson` (final and incremental LineStrings, loop closures as Points).
+Poses: x, y, yaw from the SE(2) pose graph, z / roll / pitch from the odometry.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from meridian_torch.backend.candidates import LoopClosureCandidates
+from meridian_torch.backend.localizer import LocalizationResult
+from meridian_torch.errors import SequenceFormatError
+from meridian_torch.geometry.trajectory import Trajectory
+from meridian_torch.io.atomic import write_text_atomic
+from meridian_torch.io.poses import read_tum, write_tum
+
+__all__ = [
+    "COVARIANCE_CSV",
+    "FINAL_TUM",
+    "GEOJSON",
+    "HYPOTHESES_CSV",
+    "INCREMENTAL_TUM",
+    "LATLON_CSV",
+    "LOOP_CLOSURES_CSV",
+    "SUBMAPS_CSV",
+    "SUMMARY_JSON",
+    "RunOutputs",
+    "read_outputs",
+    "to_latlon",
+    "write_outputs",
+]
+
+FINAL_TUM = "trajectory.tum"
+INCREMENTAL_TUM = "trajectory_incremental.tum"
+COVARIANCE_CSV = "covariance.csv"
+LOOP_CLOSURES_CSV = "loop_closures.csv"
+HYPOTHESES_CSV = "hypotheses.csv"
+SUBMAPS_CSV = "submaps.csv"
+SUMMARY_JSON = "localization.json"
+LATLON_CSV = "trajectory_latlon.csv"
+GEOJSON = "trajectory.geojson"
+
+_CANDIDATE_COLUMNS = [
+    "submap_index",
+    "time",
+    "patch_index",
+    "x",
+    "y",
+    "yaw",
+    "probability",
+    "quality",
+    "n_associations",
+]
+_POSE_NOTE = "x, y, yaw: SE(2) pose graph; z, roll, pitch: odometry"
+
+
+def _csv(header: list[str], rows: list[list[object]]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def _num(v: float) -> str:
+    return repr(float(v))
+
+
+def _candidate_rows(c: LoopClosureCandidates) -> list[list[object]]:
+    T = c.T_world_base.numpy()
+    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    return [
+        [
+            int(c.submap_index[k]),
+            f"{float(c.time[k]):.9f}",
+            int(c.patch_index[k]),
+            _num(T[k, 0, 2]),
+            _num(T[k, 1, 2]),
+            _num(yaw[k]),
+            _num(c.probability[k]),
+            _num(c.quality[k]),
+            int(c.n_associations[k]),
+        ]
+        for k in range(len(c))
+    ]
+
+
+def to_latlon(xy: np.ndarray, crs: str) -> np.ndarray:
+    """(N, 2) world x, y in the projected `crs` -> (N, 2) WGS84 latitude, longitude (degrees)."""
+    from rasterio.warp import transform
+
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    lon, lat = transform(crs, "EPSG:4326", xy[:, 0].tolist(), xy[:, 1].tolist())
+    return np.stack([np.asarray(lat), np.asarray(lon)], axis=1)
+
+
+def _geojson(
+    final: Trajectory | None, incremental: Trajectory | None, inliers: LoopClosureCandidates, crs: str
+) -> str:
+    features = []
+    for name, traj in (("final", final), ("incremental", incremental)):
+        if traj is not None:
+            latlon = to_latlon(traj.positions[:, :2], crs)
+            features.append(
+                {
+                    "type": "Feature",
+                    "properties": {
+                        "name": f"{name} trajectory",
+                        "t_start": float(traj.timestamps[0]),
+                        "t_end": float(traj.timestamps[-1]),
+                    },
+                    "geometry": {"type": "LineString", "coordinates": latlon[:, ::-1].tolist()},
+                }
+            )
+    if len(inliers):
+        latlon = to_latlon(inliers.T_world_base[:, :2, 2].numpy(), crs)
+        for k in range(len(inliers)):
+            features.append(
+                {
+                    "type": "Feature",
+                    "properties": {
+                        "name": "loop closure",
+                        "submap_index": int(inliers.submap_index[k]),
+                        "time": float(inliers.time[k]),
+                        "patch_index": int(inliers.patch_index[k]),
+                    },
+                    "geometry": {"type": "Point", "coordinates": latlon[k, ::-1].tolist()},
+                }
+            )
+    return json.dumps({"type": "FeatureCollection", "features": features}) + "\n"
+
+
+def write_outputs(
+    out_dir: str | Path, result: LocalizationResult, *, crs: str | None = None
+) -> dict[str, Path]:
+    """Write every output of `result` into `out_dir`; returns {file name: path} of what was written.
+
+    `crs` (the orthophoto's projected CRS, e.g. "EPSG:32632") adds the latitude/longitude outputs.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+
+    def text(name: str, content: str) -> None:
+        write_text_atomic(out / name, content)
+        written[name] = out / name
+
+    final = result.final_trajectory
+    incremental = result.incremental_trajectory
+    if final is not None:
+        write_tum(out / FINAL_TUM, final, comment=f"meridian-torch final T_world_base ({_POSE_NOTE})")
+        written[FINAL_TUM] = out / FINAL_TUM
+        if result.covariance is not None:
+            c = result.covariance
+            rows = [
+                [f"{t:.9f}", *(_num(c[k, i, j]) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
+                for k, t in enumerate(result.frame_times)
+            ]
+            text(COVARIANCE_CSV, _csv(["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"], rows))
+    if incremental is not None:
+        write_tum(
+            out / INCREMENTAL_TUM,
+            incremental,
+            comment=f"meridian-torch online T_world_base from the global fix on ({_POSE_NOTE})",
+        )
+        written[INCREMENTAL_TUM] = out / INCREMENTAL_TUM
+    text(LOOP_CLOSURES_CSV, _csv(_CANDIDATE_COLUMNS, _candidate_rows(result.inliers)))
+    hyp_rows = []
+    for index in sorted(result.submap_hypotheses):
+        mode = result.submap_matching_mode.get(index, "")
+        hyp_rows += [[*row, mode] for row in _candidate_rows(result.submap_hypotheses[index])]
+    text(HYPOTHESES_CSV, _csv(_CANDIDATE_COLUMNS + ["mode"], hyp_rows))
+    text(
+        SUBMAPS_CSV,
+        _csv(
+            [
+                "submap_index",
+                "time",
+                "state",
+                "n_patches",
+                "n_hypotheses",
+                "n_candidates",
+                "n_inliers",
+                "attempted",
+                "fix_committed",
+                "seconds",
+            ],
+            [
+                [
+                    e.submap_index,
+                    f"{e.time:.9f}",
+                    e.state,
+                    e.n_patches,
+                    e.n_hypotheses,
+                    e.n_candidates,
+                    e.n_inliers,
+                    int(e.attempted),
+                    int(e.fix_committed),
+                    f"{e.seconds:.4f}",
+                ]
+                for e in result.events
+            ],
+        ),
+    )
+    summary = {
+        "localized": result.localized,
+        "n_frames": len(result.frame_times),
+        "first_frame_time": float(result.frame_times[0]),
+        "last_frame_time": float(result.frame_times[-1]),
+        "n_submaps": len(result.events),
+        "n_inliers": len(result.inliers),
+        "fix_submap_index": result.fix_submap_index,
+        "fix_time": result.fix_time,
+        "timings_s": result.timings,
+        "crs": crs,
+        "pose_note": _POSE_NOTE,
+    }
+    text(SUMMARY_JSON, json.dumps(summary, indent=2) + "\n")
+    if crs is not None and final is not None:
+        latlon = to_latlon(final.positions[:, :2], crs)
+        text(
+            LATLON_CSV,
+            _csv(
+                ["timestamp", "latitude", "longitude"],
+                [[f"{t:.9f}", f"{la:.9f}", f"{lo:.9f}"] for t, (la, lo) in zip(final.timestamps, latlon)],
+            ),
+        )
+    if crs is not None and (final is not None or incremental is not None):
+        text(GEOJSON, _geojson(final, incremental, result.inliers, crs))
+    return written
+
+
+@dataclass(frozen=True)
+class RunOutputs:
+    """What `evaluate` needs from an output folder."""
+
+    summary: dict
+    final: Trajectory | None
+    incremental: Trajectory | None
+    loop_closures: np.ndarray  # structured rows of loop_closures.csv
+    hypotheses: np.ndarray  # structured rows of hypotheses.csv
+
+
+def _read_table(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise SequenceFormatError(f"{path}: missing (not a localization output folder?)")
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    names = rows[0]
+    dtypes = [
+        ("submap_index", "i8"),
+        ("time", "f8"),
+        ("patch_index", "i8"),
+        ("x", "f8"),
+        ("y", "f8"),
+        ("yaw", "f8"),
+        ("probability", "f8"),
+        ("quality", "f8"),
+        ("n_associations", "i8"),
+        ("mode", "U32"),
+    ]
+    dtype = [d for d in dtypes if d[0] in names]
+    order = [names.index(n) for n, _ in dtype]
+    return np.array([tuple(r[i] for i in order) for r in rows[1:]], dtype=dtype)
+
+
+def read_outputs(out_dir: str | Path) -> RunOutputs:
+    """Read the folder written by `write_outputs` (missing trajectories are None)."""
+    out = Path(out_dir)
+    if not (out / SUMMARY_JSON).is_file():
+        raise SequenceFormatError(f"{out / SUMMARY_JSON}: missing (not a localization output folder?)")
+    summary = json.loads((out / SUMMARY_JSON).read_text())
+    final = read_tum(out / FINAL_TUM) if (out / FINAL_TUM).is_file() else None
+    incremental = read_tum(out / INCREMENTAL_TUM) if (out / INCREMENTAL_TUM).is_file() else None
+    return RunOutputs(
+        summary, final, incremental, _read_table(out / LOOP_CLOSURES_CSV), _read_table(out / HYPOTHESES_CSV)
+    )

@@ -1,0 +1,387 @@
+"""The localizer's state machine on a synthetic world with a scripted matcher.
+
+The matcher is replaced by one that knows the truth: for every patch containing the submap's
+true position it returns the true T_world_odom (plus small noise) among random wrong hypotheses,
+so these tests exercise candidates, consistency, CLIPPER, the gate, commits and the pose graph,
+not matching (tested in the matching suite; an end-to-end run with the real matcher is below).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from meridian_torch.backend.localizer import Localizer, localize_offline
+from meridian_torch.config import MeridianConfig
+from meridian_torch.geometry.se2 import se2_matrix
+from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse, yaw_of
+from meridian_torch.geometry.trajectory import Trajectory
+from meridian_torch.io.map_file import AerialMap
+from meridian_torch.mapping.tiling import PatchGrid
+from meridian_torch.matching.hypotheses import Hypotheses
+from meridian_torch.types import GroundSubmap, PrimitiveSet, stack_primitive_sets
+
+D = 4
+MAP_SIZE_M = 150.0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    # These tensors are small: on a loaded 2-core machine torch's intra-op threads only contend
+    # (measured: the suite ran 3.5x slower with 2 threads than with 1).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_map(seed: int = 0) -> AerialMap:
+    rng = np.random.default_rng(seed)
+    starts = np.arange(0.0, MAP_SIZE_M - 60.0 + 1e-9, 30.0)
+    bounds = np.array([[x, x + 60.0, y, y + 60.0] for y in starts for x in starts])
+    sets = []
+    for x0, x1, y0, y1 in bounds:
+        pts = rng.uniform([x0, y0], [x1, y1], size=(20, 2))
+        desc = torch.nn.functional.normalize(torch.randn(20, D, dtype=torch.float64), dim=-1)
+        sets.append(
+            PrimitiveSet(
+                points_xy=torch.as_tensor(pts, dtype=torch.float32),
+                point_descriptors=desc.float(),
+                point_segment_ids=torch.arange(20),
+                line_endpoints=torch.zeros(0, 2, 2),
+                line_kinds=torch.zeros(0, dtype=torch.int64),
+                line_descriptors=torch.zeros(0, D),
+                line_segment_ids=torch.zeros(0, dtype=torch.int64),
+            )
+        )
+    n = len(bounds)
+    grid = PatchGrid(
+        pixel_boxes=np.zeros((n, 4), dtype=np.int64),
+        grid_index=np.zeros((n, 2), dtype=np.int64),
+        bounds_xy=bounds,
+        centres_xy=np.stack([bounds[:, :2].mean(1), bounds[:, 2:].mean(1)], 1),
+    )
+    return AerialMap(
+        patches=grid,
+        primitives=stack_primitive_sets(sets),
+        global_descriptors=torch.randn(n, D),
+        meters_per_pixel=0.5,
+        origin_xy=(0.0, MAP_SIZE_M),
+        image_size=(360, 360),
+        crs="EPSG:32632",
+    )
+
+
+class World:
+    """Ground truth, drifting odometry, submaps every `spacing_m` and a matcher that knows the truth."""
+
+    def __init__(self, seed: int = 0, n_frames: int = 260, spacing_m: float = 20.0) -> None:
+        rng = np.random.default_rng(seed)
+        self.rng = rng
+        self.times = np.arange(n_frames) * 0.5
+        # A loop around the map centre, 1 m per frame.
+        s = np.arange(n_frames, dtype=np.float64)
+        radius = 45.0
+        ang = s / radius
+        xy = np.stack([75 + radius * np.cos(ang), 75 + radius * np.sin(ang)], 1)
+        yaw = ang + math.pi / 2
+        z = 0.3 * np.sin(s / 20.0)
+        self.gt = Trajectory(self.times, pose_from_xyz_yaw(np.c_[xy, z], yaw))
+        # Odometry: T_odom_world (30 deg, offset) times ground truth, plus a slow yaw drift.
+        T_odom_world = pose_from_xyz_yaw(np.array([5.0, -40.0, 0.0]), np.array(math.radians(30.0)))
+        steps = se3_inverse(self.gt.poses[:-1]) @ self.gt.poses[1:]
+        drift = pose_from_xyz_yaw(np.zeros((n_frames - 1, 3)), np.full(n_frames - 1, math.radians(0.01)))
+        odom = [T_odom_world @ self.gt.poses[0]]
+        for step, d in zip(steps, drift):
+            odom.append(odom[-1] @ step @ d)
+        self.odometry = Trajectory(self.times, np.stack(odom))
+        path = self.odometry.path_lengths()
+        self.submap_frames = [int(k) for k in np.searchsorted(path, np.arange(10.0, path[-1], spacing_m))]
+        self.bad_submaps: set[int] = set()  # no correct hypothesis at all
+        self.corrupt_submaps: set[int] = set()  # the correct hypothesis is shifted 25 m
+        self.calls: list[tuple[int, bool]] = []  # (submap, with rotation prior)
+
+    def submaps(self) -> list[GroundSubmap]:
+        out = []
+        path = self.odometry.path_lengths()
+        for i, k in enumerate(self.submap_frames):
+            prims = PrimitiveSet.empty(D)
+            # The scripted matcher identifies the submap by this id.
+            prims = PrimitiveSet(
+                points_xy=torch.zeros(1, 2),
+                point_descriptors=torch.ones(1, D) / 2,
+                point_segment_ids=torch.tensor([i]),
+                line_endpoints=prims.line_endpoints,
+                line_kinds=prims.line_kinds,
+                line_descriptors=prims.line_descriptors,
+                line_segment_ids=prims.line_segment_ids,
+            )
+            out.append(
+                GroundSubmap(
+                    index=i,
+                    time=float(self.times[k]),
+                    T_odom_base=self.odometry.poses[k],
+                    path_length_m=float(path[k]),
+                    primitives=prims,
+                    frame_descriptors=torch.randn(2, D),
+                )
+            )
+        return out
+
+    def true_T_world_odom(self, i: int) -> np.ndarray:
+        k = self.submap_frames[i]
+        T = self.gt.poses[k] @ se3_inverse(self.odometry.poses[k])
+        return np.array([[T[0, 0], T[0, 1], T[0, 3]], [T[1, 0], T[1, 1], T[1, 3]], [0, 0, 1.0]])
+
+    def matcher(self, ground, aerial, *, rotation_prior, config, generator) -> Hypotheses:
+        i = int(ground.point_segment_ids[0])
+        self.calls.append((i, rotation_prior is not None))
+        P, L, m = len(aerial), 3, 5
+        k = self.submap_frames[i]
+        true_xy = self.gt.poses[k][:2, 3]
+        T_true = self.true_T_world_odom(i)
+        theta = torch.empty(P, L, dtype=torch.float64)
+        t = torch.empty(P, L, 2, dtype=torch.float64)
+        prob = torch.tensor([0.4, 0.3, 0.2], dtype=torch.float64).expand(P, L).clone()
+        for p in range(P):
+            pts = aerial.points_xy[p][aerial.point_valid[p]].double().numpy()
+            lo, hi = pts.min(0) - 2, pts.max(0) + 2
+            # Wrong hypotheses: anywhere in the patch but >= 20 m from the truth, any yaw (near the
+            # prior's when given), so that they are never consistent by chance.
+            centre = self.rng.uniform(lo, hi, size=(64, 2))
+            centre = centre[np.linalg.norm(centre - true_xy, axis=1) >= 20.0][:L]
+            yaw = (
+                self.rng.uniform(-math.pi, math.pi, size=L)
+                if rotation_prior is None
+                else rotation_prior + self.rng.normal(0, 0.2, size=L)
+            )
+            T_wb_odom = se2_matrix(torch.as_tensor(yaw), torch.zeros(L, 2)).numpy()
+            # choose t so that the submap centre maps to `centre`
+            odom_xy = self.odometry.poses[k][:2, 3]
+            theta[p] = torch.as_tensor(yaw)
+            t[p] = torch.as_tensor(centre - np.einsum("lij,j->li", T_wb_odom[:, :2, :2], odom_xy))
+            inside = np.all(true_xy >= lo) and np.all(true_xy <= hi)
+            if inside and i not in self.bad_submaps:
+                rank = int(self.rng.integers(0, 2))
+                noise = self.rng.normal(0, [0.3, 0.3, math.radians(0.5)])
+                shift = np.array([25.0, 0.0]) if i in self.corrupt_submaps else np.zeros(2)
+                theta[p, rank] = math.atan2(T_true[1, 0], T_true[0, 0]) + noise[2]
+                t[p, rank] = torch.as_tensor(T_true[:2, 2] + noise[:2] + shift)
+        valid = torch.ones(P, L, dtype=torch.bool)
+        return Hypotheses(
+            T_world_odom=se2_matrix(theta, t).float(),
+            theta=theta.float(),
+            t=t.float(),
+            probability=prob.float(),
+            association_mask=torch.ones(P, L, m, dtype=torch.bool),
+            objective=torch.ones(P, L),
+            valid=valid,
+            pairs=torch.zeros(P, m, 2, dtype=torch.int64),
+        )
+
+
+def _cfg(**backend) -> MeridianConfig:
+    cfg = MeridianConfig()
+    return cfg.model_copy(
+        update={
+            "matching": cfg.matching.model_copy(
+                update={
+                    "place_recognition": cfg.matching.place_recognition.model_copy(
+                        update={"mode": "exhaustive"}
+                    )
+                }
+            ),
+            "backend": cfg.backend.model_copy(update=backend),
+        }
+    )
+
+
+def _xy_error(T: np.ndarray, gt: Trajectory) -> np.ndarray:
+    return np.linalg.norm(T[:, :2, 3] - gt.poses[:, :2, 3], axis=1)
+
+
+@pytest.fixture(scope="module")
+def run():
+    world = World(seed=1)
+    world.bad_submaps = {0, 1, 2, 3}
+    world.corrupt_submaps = {6}
+    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    return world, loc, events, loc.finalize()
+
+
+def test_fix_is_committed_exactly_when_the_gate_holds(run) -> None:
+    world, _loc, events, result = run
+    # Submaps 0-3 carry no correct hypothesis, 6 a corrupted one: after submap n there are
+    # n - 4 correct submaps; the gate needs >= 6 of them and >= 50 % of n + 1 submaps: n = 10.
+    fixed = [e.submap_index for e in events if e.fix_committed]
+    assert fixed == [10]
+    assert all(e.state == "pre" for e in events[:10]) and all(e.state == "post" for e in events[10:])
+    assert result.fix_submap_index == 10 and result.fix_time == pytest.approx(events[10].time)
+    # After the fix every new submap is matched once, with the rotation prior, near its pose.
+    after = [c for c in world.calls if c[0] > 10]
+    assert after and all(prior for _, prior in after)
+
+
+def test_trajectory_is_recovered_and_corrupted_closure_rejected(run) -> None:
+    world, _loc, _events, result = run
+    assert result.localized
+    err = _xy_error(result.T_world_base, world.gt)
+    # Before the first and after the last inlier the drifting odometry extrapolates.
+    span = (world.times >= result.inliers.time.min().item()) & (
+        world.times <= result.inliers.time.max().item()
+    )
+    assert np.sqrt(np.mean(err[span] ** 2)) < 0.5 and np.sqrt(np.mean(err**2)) < 1.5
+    yaw_err = np.abs(np.angle(np.exp(1j * (yaw_of(result.T_world_base) - world.gt.yaws))))
+    assert np.degrees(yaw_err).max() < 2.0
+    # z (and roll/pitch) come from the odometry.
+    assert np.allclose(result.T_world_base[:, 2, 3], world.odometry.poses[:, 2, 3])
+    inlier_submaps = set(result.inliers.submap_index.tolist())
+    assert 6 not in inlier_submaps and not (inlier_submaps & world.bad_submaps)
+    assert len(inlier_submaps) == len(result.inliers)  # one per submap
+    assert len(inlier_submaps) >= len(world.submap_frames) - 6
+    assert result.covariance is not None and result.covariance.shape == (len(world.times), 3, 3)
+    assert np.all(np.linalg.eigvalsh(result.covariance) > 0)
+
+
+def test_online_estimate_is_causal_and_close(run) -> None:
+    world, _loc, _events, result = run
+    inc = result.T_world_base_incremental
+    fix_time = result.fix_time
+    before = world.times < fix_time
+    assert np.all(np.isnan(inc[before])) and np.all(np.isfinite(inc[~before]))
+    assert _xy_error(inc[~before], Trajectory(world.times[~before], world.gt.poses[~before])).max() < 3.0
+    # The estimate of a frame depends only on updates available at its time: replaying the
+    # localizer up to submap 10 gives identical estimates for frames before submap 11's time.
+    world2 = World(seed=1)
+    world2.bad_submaps, world2.corrupt_submaps = {0, 1, 2, 3}, {6}
+    loc2 = Localizer(make_map(), _cfg(), world2.odometry, world2.times, matcher=world2.matcher)
+    for s in world2.submaps()[:11]:
+        loc2.add_submap(s)
+    cut = world.times < world.times[world.submap_frames[11]]
+    assert np.allclose(loc2.online_estimate()[cut], inc[cut], equal_nan=True)
+
+
+def test_gate_fraction_blocks_the_fix() -> None:
+    world = World(seed=2, n_frames=200)
+    world.bad_submaps = set(range(6))  # 6 of 10 submaps are hopeless: never >= 50 % + 6
+    loc = Localizer(make_map(), _cfg(final_rematch=False), world.odometry, world.times, matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    assert len(events) == 10 and not any(e.fix_committed for e in events)
+    assert any(e.attempted for e in events)
+    result = loc.finalize()
+    assert not result.localized and result.incremental_trajectory is None
+    assert np.all(np.isnan(result.T_world_base))
+
+
+def test_offline_mode_localizes() -> None:
+    world = World(seed=3, n_frames=200)
+    world.corrupt_submaps = {2}
+    result = localize_offline(
+        make_map(), _cfg(), world.odometry, world.times, world.submaps(), matcher=world.matcher
+    )
+    assert result.localized and result.fix_submap_index is None
+    assert np.sqrt(np.mean(_xy_error(result.T_world_base, world.gt) ** 2)) < 1.0
+    assert 2 not in result.inliers.submap_index.tolist()
+    # pass 1 matched every submap without prior, pass 2 every submap with it
+    assert sum(1 for _, prior in world.calls if not prior) == len(world.submap_frames)
+    assert sum(1 for _, prior in world.calls if prior) == len(world.submap_frames)
+
+
+def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
+    from meridian_torch.config import EvaluationConfig
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.poses import parse_tum
+    from meridian_torch.io.results import read_outputs, write_outputs
+
+    world, _loc, events, result = run
+    written = write_outputs(tmp_path, result, crs="EPSG:32632")
+    for name in (
+        "trajectory.tum",
+        "trajectory_incremental.tum",
+        "covariance.csv",
+        "loop_closures.csv",
+        "hypotheses.csv",
+        "submaps.csv",
+        "localization.json",
+        "trajectory_latlon.csv",
+        "trajectory.geojson",
+    ):
+        assert name in written and (tmp_path / name).is_file()
+    final, problems = parse_tum(tmp_path / "trajectory.tum")
+    assert not problems and np.allclose(final.timestamps, world.times, atol=1e-9)  # every frame
+    assert np.allclose(final.poses, result.T_world_base, atol=1e-9)
+    inc, problems = parse_tum(tmp_path / "trajectory_incremental.tum")
+    assert not problems and inc.timestamps[0] >= result.fix_time  # only from the fix on
+    # Every data line is `timestamp tx ty tz qx qy qz qw`.
+    lines = [ln for ln in (tmp_path / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
+    assert all(len(ln.split()) == 8 for ln in lines)
+    latlon = np.loadtxt(tmp_path / "trajectory_latlon.csv", delimiter=",", skiprows=1)
+    # EPSG:32632 = UTM 32N: northing ~ 0-150 m is just north of the equator, easting ~ 0 lies far
+    # west of the central meridian (9 E); mapped back, the points return to the trajectory.
+    from rasterio.warp import transform
+
+    assert np.all((latlon[:, 1] > 0) & (latlon[:, 1] < 0.01)) and np.all(
+        (latlon[:, 2] > 3) & (latlon[:, 2] < 6)
+    )
+    x, y = transform("EPSG:4326", "EPSG:32632", latlon[:, 2].tolist(), latlon[:, 1].tolist())
+    assert np.allclose(np.c_[x, y], final.poses[:, :2, 3], atol=1e-3)
+    run_out = read_outputs(tmp_path)
+    assert len(run_out.loop_closures) == len(result.inliers)
+    metrics = evaluate_run(tmp_path, world.gt, EvaluationConfig())
+    assert (tmp_path / "metrics.json").is_file()
+    err = np.linalg.norm(result.T_world_base[:, :2, 3] - world.gt.poses[:, :2, 3], axis=1)
+    assert metrics["final"]["ate_rmse_m"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+    assert metrics["fraction_localized"] == pytest.approx(np.mean(world.times >= result.fix_time))
+    assert metrics["time_to_first_fix_s"] == pytest.approx(result.fix_time - world.times[0])
+    # ground truth runs 1 m per frame
+    assert metrics["distance_to_first_fix_m"] == pytest.approx(result.fix_time / 0.5, rel=1e-3)
+    reg = metrics["registration_success"]["place_recognition"]["5m_5deg"]
+    # Submaps 0-3 have no correct hypothesis and 6 a corrupted one; the others before the fix have
+    # one at rank 1 or 2 of their patch (probabilities 0.4 / 0.3, a tie across patches).
+    n_pre = len([e for e in events if e.submap_index <= result.fix_submap_index])
+    assert reg["n_submaps"] == n_pre and reg["top25"] == pytest.approx((n_pre - 5) / n_pre)
+    assert reg["top1"] < reg["top25"]
+
+
+def test_report_is_written(run, tmp_path) -> None:
+    from meridian_torch.evaluation.report import write_report
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.results import write_outputs
+
+    world, _loc, _events, result = run
+    write_outputs(tmp_path, result)
+    metrics = evaluate_run(tmp_path, world.gt)
+    report = write_report(tmp_path, metrics=metrics, groundtruth=world.gt)
+    text = report.read_text()
+    assert f"{metrics['final']['ate_rmse_m']:.3g}" in text and "localized: **True**" in text
+    for png in ("trajectory.png", "error_vs_distance.png"):
+        assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "trajectory.geojson").exists()  # no CRS, no geo outputs
+
+
+def test_failed_attempts_rematch_only_new_submaps_while_the_inliers_stay() -> None:
+    world = World(seed=4, n_frames=200)
+    world.bad_submaps = set(range(10))  # nothing consistent: the pre-fix inlier set never changes
+    loc = Localizer(make_map(), _cfg(final_rematch=False), world.odometry, world.times, matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    attempts = [e.submap_index for e in events if e.attempted]
+    assert attempts == list(range(5, 10)) and not any(e.fix_committed for e in events)
+    # The first attempt re-matches submaps 0-5, every later one only the newest submap.
+    assert sum(1 for _, prior in world.calls if prior) == len(events)
+
+
+def test_cached_pool_graph_matches_a_fresh_one(run) -> None:
+    # The pool's consistency graph is carried across submaps (appends, commits that drop
+    # candidates); after all of it, it must equal the graph scored from scratch.
+    from meridian_torch.backend.consistency import sparse_affinity
+
+    _world, loc, events, _result = run
+    n, (i, j, v) = loc._pool_edges
+    assert n == len(loc.pool) and any(e.state == "post" for e in events)
+    fi, fj, fv = sparse_affinity(loc.pool, loc.cfg.backend)
+    assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(fi.tolist(), fj.tolist()))
+    assert torch.allclose(v.sort().values, fv.sort().values)
