@@ -295,7 +295,9 @@ class TestSolveClipper:
         with pytest.raises(ValueError, match="C must have"):
             solve_clipper(M, torch.ones(9, 9, dtype=torch.bool))
         with pytest.raises(ValueError, match="valid"):
-            solve_clipper(M, valid=torch.ones(10, dtype=torch.bool))
+            solve_clipper(M, valid=torch.ones(9, dtype=torch.bool))
+        with pytest.raises(ValueError, match="valid"):
+            solve_clipper(M, valid=torch.ones(10, dtype=torch.int64))
         with pytest.raises(ValueError, match="u0"):
             solve_clipper(M, u0=-torch.ones(10, dtype=torch.float64))
         with pytest.raises(ValueError, match="symmetric"):
@@ -326,3 +328,15 @@ def test_densest_exact_matches_brute_force(seed: int) -> None:
     x = np.zeros(s)
     x[keep] = 1.0
     assert x @ W @ x / x.sum() == pytest.approx(best, rel=1e-9)
+
+
+def test_numpy_inputs_equal_torch_inputs() -> None:
+    M, _ = planted_clique(30, 6, 4)
+    u0 = torch.rand(30, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    C = (M > 0).to(torch.int64)
+    from_torch = solve_clipper(M, C, u0=u0)
+    from_numpy = solve_clipper(M.numpy(), C.numpy(), u0=u0.numpy(), valid=np.ones(30, dtype=bool))
+    assert torch.equal(from_torch.inliers, from_numpy.inliers)
+    torch.testing.assert_close(from_torch.u, from_numpy.u)
+    with pytest.raises(ValueError, match="M"):
+        solve_clipper(np.array([["a", "b"], ["c", "d"]]))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -93,3 +94,89 @@ def test_clipper_solver_and_match_arrays() -> None:
     )
     check_top(hyp, max(len(p.points_xy) for p in patches), kp, kl)
     assert float(hyp.probability[0, 0]) == 1.0 and int(hyp.valid[0].sum()) == 1
+
+
+def _arrays(ps: PrimitiveSet) -> tuple:
+    return (ps.points_xy.numpy(), ps.point_descriptors.numpy(), ps.line_endpoints.numpy(), ps.line_kinds.numpy(),
+            ps.line_descriptors.numpy())
+
+
+SMALL = MatchConfig(associations=AssociationConfig(k_prim=3), particles=ParticleConfig(n_particles=8, n_iterations=20))
+
+
+def test_match_arrays_numpy_equals_torch_and_empty_inputs() -> None:
+    torch.set_num_threads(1)
+    ground, patches, _, _ = scene()
+    g = _arrays(ground)
+    aerial = [list(x) for x in zip(*[_arrays(p) for p in patches[:2]])]
+    a = match_arrays(*g, *aerial, config=SMALL, generator=torch.Generator().manual_seed(0))
+    b = match_arrays(*[torch.as_tensor(x) for x in g], *[[torch.as_tensor(x) for x in f] for f in aerial],
+                     config=SMALL, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(a.T_world_odom, b.T_world_odom) and torch.equal(a.probability, b.probability)
+    empty = ([], [], [], [], [])
+    D = g[1].shape[1]
+    no_lines = (*g[:2], [], [], [])
+    no_points = (np.zeros((0, 2)), np.zeros((0, D)), *g[2:])
+    cases = [
+        (no_lines, aerial),
+        (no_points, aerial),
+        (empty, aerial),
+        (g, [list(x) + [y] for x, y in zip(aerial, empty)]),  # a third, empty patch
+        (empty, [[y] for y in empty]),
+    ]
+    for ground_arrays, patches_arrays in cases:
+        hyp = match_arrays(*ground_arrays, *patches_arrays, config=SMALL)
+        P = len(patches_arrays[0])
+        assert hyp.T_world_odom.shape == (P, 25, 3, 3) and hyp.probability.shape == (P, 25)
+        assert torch.isfinite(hyp.T_world_odom[hyp.valid]).all()
+        assert (hyp.probability.sum(1) <= 1 + 1e-6).all()
+    # An empty patch, and a ground without primitives, never yield hypotheses.
+    assert not match_arrays(*g, *[list(x) + [y] for x, y in zip(aerial, empty)], config=SMALL).valid[2].any()
+    assert not match_arrays(*empty, *aerial, config=SMALL).valid.any()
+
+
+@pytest.mark.parametrize(
+    "position, value, message",
+    [
+        (0, np.zeros((3, 3)), "ground_points"),
+        (1, np.zeros((14, 16, 1)), "ground_point_desc"),
+        (2, np.zeros((10, 2)), "ground_lines"),
+        (3, np.full(10, 7), "ground_line_kinds"),
+        (3, np.zeros(4, dtype=np.int64), "ground_line_kinds"),
+        (4, np.zeros((9, 16)), "ground_line_desc"),
+        (5, [np.zeros((3, 2))], "aerial"),  # one patch where the other sequences have two
+        (0, np.full((14, 2), np.nan), "ground_points"),
+    ],
+)
+def test_match_arrays_errors_name_the_argument(position: int, value: object, message: str) -> None:
+    ground, patches, _, _ = scene()
+    args = list(_arrays(ground)) + [list(x) for x in zip(*[_arrays(p) for p in patches[:2]])]
+    args[position] = value
+    with pytest.raises(ValueError, match=message):
+        match_arrays(*args, config=SMALL)
+
+
+def test_match_arrays_rejects_bad_patch_and_prior() -> None:
+    ground, patches, _, _ = scene()
+    g = _arrays(ground)
+    aerial = [list(x) for x in zip(*[_arrays(p) for p in patches[:2]])]
+    aerial[0][1] = np.zeros((5, 5))
+    with pytest.raises(ValueError, match=r"aerial_points\[1\]"):
+        match_arrays(*g, *aerial, config=SMALL)
+    aerial = [list(x) for x in zip(*[_arrays(p) for p in patches[:2]])]
+    with pytest.raises(ValueError, match="rotation_prior"):
+        match_arrays(*g, *aerial, rotation_prior=[0.1, 0.2, 0.3], config=SMALL)
+    with pytest.raises(ValueError, match="at least one aerial patch"):
+        match_arrays(*g, [], [], [], [], [], config=SMALL)
+
+
+def test_patch_chunking_does_not_change_results() -> None:
+    torch.set_num_threads(1)
+    ground, patches, _, _ = scene()
+    batch = stack_primitive_sets(patches)
+    cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=16, n_iterations=60, max_associations=24)})
+    one = match_submap(ground, batch, config=cfg.model_copy(update={"patch_chunk": 1}), generator=torch.Generator().manual_seed(4))
+    all_ = match_submap(ground, batch, config=cfg.model_copy(update={"patch_chunk": 8}), generator=torch.Generator().manual_seed(4))
+    assert torch.equal(one.valid, all_.valid) and torch.equal(one.association_mask, all_.association_mask)
+    torch.testing.assert_close(one.T_world_odom, all_.T_world_odom)
+    torch.testing.assert_close(one.probability, all_.probability)

@@ -32,9 +32,12 @@ points that define an infinite line.
 
 Evaluation: the geometry of every *primitive* pair (point-line offsets, line-line closest
 points, angles, lever arms) is computed once per side (P * A^2 aerial, G^2 ground pairs) and
-only gathered per association pair (P * m^2, m ~ K_prim * G). Association pairs are scored in
-row blocks over the upper triangle, so peak memory stays bounded by
-`AffinityConfig.block_pairs`. `affinity_matrix` returns a dense (P, m, m) tensor,
+only gathered per association pair (P * m^2, m ~ K_prim * G). Association pairs are visited in
+row blocks over the upper triangle (peak memory bounded by `AffinityConfig.block_pairs`); in
+each block a cheap necessary condition (one table lookup per side: point distances, point-line
+distances, line angles; plus q_i q_j) selects the few per cent of pairs that can score
+non-zero, and the exact scores run on those only, as flat index lists. This made the bench case
+(P = 25, m = 2000) about 15x faster than scoring every pair. `affinity_matrix` returns a dense (P, m, m) tensor,
 `affinity_matrix_sparse` a coalesced sparse COO (P, m, m) tensor and `affinity` picks the form
 by `AffinityConfig.dense_max_m` (see its description for the measurement behind the default).
 """
@@ -43,8 +46,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Iterator
-
 import torch
 
 from meridian_torch.matching.associations import Associations
@@ -52,7 +53,9 @@ from meridian_torch.matching.config import AffinityConfig
 from meridian_torch.types import LineKind, PrimitiveBatch, PrimitiveSet
 
 __all__ = [
+    "AffinityEntries",
     "affinity",
+    "affinity_entries",
     "affinity_matrix",
     "affinity_matrix_sparse",
     "unary_scores",
@@ -350,7 +353,8 @@ class _Gathered:
     Points: a_px, a_py, g_px, g_py (P, mp), ground already rotated by the prior. Local
     primitive indices within their type: a_pt, g_pt (P, mp), a_ln, g_ln (P, ml). Tables,
     flattened over their pair axes: a_pl (F, P * Ap * Al), g_pl (F, Gp * Gl),
-    a_ll (F, P * Al * Al), g_ll (F, Gl * Gl).
+    a_ll (F, P * Al * Al), g_ll (F, Gl * Gl). Gate tables (one scalar per primitive pair, see
+    `_gate_tables`): a_pp_gate (P * Ap * Ap), g_pp_gate (Gp * Gp), and likewise for pl, ll.
     """
 
     a_px: torch.Tensor
@@ -365,10 +369,17 @@ class _Gathered:
     g_pl: torch.Tensor
     a_ll: torch.Tensor
     g_ll: torch.Tensor
+    a_pp_gate: torch.Tensor
+    g_pp_gate: torch.Tensor
+    a_pl_gate: torch.Tensor
+    g_pl_gate: torch.Tensor
+    a_ll_gate: torch.Tensor
+    g_ll_gate: torch.Tensor
     n_aerial_points: int
     n_aerial_lines: int
+    n_ground_points: int
     n_ground_lines: int
-    cos_sin: tuple[torch.Tensor, torch.Tensor] | None  # (P, 1, 1) each, with a rotation prior
+    cos_sin: tuple[torch.Tensor, torch.Tensor] | None  # (P,) each, with a rotation prior
     ground_idx: torch.Tensor  # (P, m) -1 in padding
     aerial_idx: torch.Tensor  # (P, m)
     valid: torch.Tensor  # (P, m)
@@ -378,6 +389,44 @@ class _Gathered:
 
 def _rotate(cos: torch.Tensor, sin: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return cos * x - sin * y, sin * x + cos * y
+
+
+# Gates compare rotation-invariant table values that the exact scores recompute from rotated
+# or differently rounded inputs; this slack (metres or radians) keeps the gate a strict superset.
+_GATE_SLACK = 1e-3
+
+
+def _gate_tables(
+    a_xy: torch.Tensor, g_xy: torch.Tensor, a_pl: torch.Tensor, g_pl: torch.Tensor, a_ll: torch.Tensor,
+    g_ll: torch.Tensor, cfg: AffinityConfig,
+) -> tuple[torch.Tensor, ...]:
+    """Cheap necessary conditions of a non-zero score, one scalar per primitive pair and side.
+
+    Point-point: the distance (NaN when closer than the minimum separation, so the gate fails);
+    point-line: |p - N|, which every point-line score compares with eps_t (the capping
+    point-point score of (p, N), whose eps is never inflated); line-line: the angle between
+    the lines (NaN below the minimum line angle). An association pair can score non-zero only
+    if its aerial and ground values differ by at most eps_t (eps_theta for lines).
+    """
+    def same_type(value: torch.Tensor, minimum: float) -> torch.Tensor:
+        # NaN fails every comparison. The diagonal (a primitive with itself, i.e. two
+        # associations sharing it) is NaN too, so the gate also enforces one-to-one.
+        n = value.shape[-1]
+        self_pair = torch.eye(n, dtype=torch.bool, device=value.device)
+        return value.masked_fill((value < minimum) | self_pair, float("nan")).flatten()
+
+    def distances(xy: torch.Tensor) -> torch.Tensor:
+        return torch.hypot(xy[..., :, None, 0] - xy[..., None, :, 0], xy[..., :, None, 1] - xy[..., None, :, 1])
+
+    # Point-line pairs never share a primitive (points and lines are indexed apart).
+    return (
+        same_type(distances(a_xy), cfg.min_point_separation_m - _GATE_SLACK),
+        same_type(distances(g_xy), cfg.min_point_separation_m - _GATE_SLACK),
+        torch.hypot(a_pl[0], a_pl[1]).flatten(),
+        torch.hypot(g_pl[0], g_pl[1]).flatten(),
+        same_type(a_ll[0], math.radians(cfg.min_line_angle_deg) - _GATE_SLACK),
+        same_type(g_ll[0], math.radians(cfg.min_line_angle_deg) - _GATE_SLACK),
+    )
 
 
 def _gather(
@@ -397,7 +446,7 @@ def _gather(
     a_idx = torch.where(valid, assoc.pairs[..., 1].to(device), -1)
     batch = torch.arange(n_patches, device=device)[:, None]
 
-    # Padding entries point at index 0 of their type; their scores are masked out at fusion.
+    # Padding entries point at index 0 of their type; they always fail the conflict test.
     g_pt = g_idx[:, :mp].clamp_min(0)
     a_pt = a_idx[:, :mp].clamp_min(0)
     g_ln = (g_idx[:, mp:] - assoc.n_ground_points).clamp_min(0)
@@ -412,6 +461,7 @@ def _gather(
     g_pl = _point_line_table(g_xy[..., :, None, 0], g_xy[..., :, None, 1], g_lines.map_axis(-2), with_vectors)
     a_ll = _line_pair_table(a_lines.map_axis(-1), a_lines.map_axis(-2), with_vectors)
     g_ll = _line_pair_table(g_lines.map_axis(-1), g_lines.map_axis(-2), with_vectors)
+    gates = _gate_tables(a_xy, g_xy, a_pl, g_pl, a_ll, g_ll, cfg)
 
     g_points = g_xy[g_pt]
     a_points = a_xy[batch, a_pt]
@@ -423,7 +473,7 @@ def _gather(
         yaw = rotation_prior.to(device=device, dtype=dtype).reshape(n_patches, 1)
         cos, sin = torch.cos(yaw), torch.sin(yaw)
         g_px, g_py = _rotate(cos, sin, g_px, g_py)
-        cos_sin = (cos[..., None], sin[..., None])
+        cos_sin = (cos[:, 0], sin[:, 0])
         # Absolute line direction must agree up to the remaining heading uncertainty.
         widen = math.radians(cfg.rotation_uncertainty_deg)
         a_phi = a_lines.angle()[batch, a_ln]
@@ -447,8 +497,15 @@ def _gather(
         g_pl=g_pl.flatten(1),
         a_ll=a_ll.flatten(1),
         g_ll=g_ll.flatten(1),
+        a_pp_gate=gates[0],
+        g_pp_gate=gates[1],
+        a_pl_gate=gates[2],
+        g_pl_gate=gates[3],
+        a_ll_gate=gates[4],
+        g_ll_gate=gates[5],
         n_aerial_points=int(a_xy.shape[1]),
         n_aerial_lines=int(aerial.line_endpoints.shape[1]),
+        n_ground_points=int(g_xy.shape[0]),
         n_ground_lines=int(ground.line_endpoints.shape[0]),
         cos_sin=cos_sin,
         ground_idx=g_idx,
@@ -475,84 +532,106 @@ def unary_scores(
 
 
 # --------------------------------------------------------------------------------------------
-# Blocked evaluation
+# Gated evaluation: a cheap necessary condition over all association pairs of a row block,
+# the exact scores only on the survivors (a few per cent), as flat index lists.
 # --------------------------------------------------------------------------------------------
 
 
-def _rows(x: torch.Tensor, r0: int, r1: int) -> torch.Tensor:
-    return x[:, r0:r1, None]
-
-
-def _cols(x: torch.Tensor, c0: int) -> torch.Tensor:
-    return x[:, None, c0:]
-
-
 def _take(table: torch.Tensor, key: torch.Tensor, cos_sin: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
-    """Table rows at key (P, r, c) -> (F, P, r, c); vector fields 3, 4 rotated per patch."""
-    out = table.index_select(1, key.reshape(-1)).view(table.shape[0], *key.shape)
+    """Table columns at key (n,) -> (F, n); vector fields 3, 4 rotated by the per-entry (cos, sin)."""
+    out = table.index_select(1, key)
     if cos_sin is not None:
         vx, vy = _rotate(*cos_sin, out[3], out[4])
         out = torch.cat([out[:3], vx[None], vy[None]])
     return out
 
 
-def _point_rows_scores(gat: _Gathered, r0: int, r1: int, cfg: AffinityConfig) -> torch.Tensor:
-    """s for point-association rows [r0, r1) against columns [r0, m): (P, r, m - r0)."""
-    mp, rotated = gat.n_point_assoc, gat.cos_sin is not None
-    a_x, a_y = _rows(gat.a_px, r0, r1), _rows(gat.a_py, r0, r1)
-    g_x, g_y = _rows(gat.g_px, r0, r1), _rows(gat.g_py, r0, r1)
-    pp = _point_pair_score(
-        a_x - gat.a_px[:, None, r0:mp],
-        a_y - gat.a_py[:, None, r0:mp],
-        g_x - gat.g_px[:, None, r0:mp],
-        g_y - gat.g_py[:, None, r0:mp],
-        0.0,
-        cfg,
-        rotated,
-        min_separation=True,
-    )
-    n_patches = gat.a_pt.shape[0]
-    patch = torch.arange(n_patches, device=gat.a_pt.device)[:, None, None]
-    a_key = (patch * gat.n_aerial_points + _rows(gat.a_pt, r0, r1)) * gat.n_aerial_lines + _cols(gat.a_ln, 0)
-    g_key = _rows(gat.g_pt, r0, r1) * gat.n_ground_lines + _cols(gat.g_ln, 0)
-    # Ground tables are in the odom frame; only their vectors need the patch's prior rotation.
-    pl = _point_line_score(_take(gat.a_pl, a_key, None), _take(gat.g_pl, g_key, gat.cos_sin), cfg, rotated)
-    return torch.cat([pp, pl], dim=2)
+def _pair_scores(gat: _Gathered, b: torch.Tensor, i: torch.Tensor, j: torch.Tensor, kind: str, cfg: AffinityConfig) -> torch.Tensor:
+    """Exact s of the association pairs (b, i, j), flat (n,); kind 'pp', 'pl' (i point, j line) or 'll'."""
+    rotated = gat.cos_sin is not None
+    cos_sin = (gat.cos_sin[0][b], gat.cos_sin[1][b]) if rotated else None
+    mp = gat.n_point_assoc
+    if kind == "pp":
+        return _point_pair_score(
+            gat.a_px[b, i] - gat.a_px[b, j],
+            gat.a_py[b, i] - gat.a_py[b, j],
+            gat.g_px[b, i] - gat.g_px[b, j],
+            gat.g_py[b, i] - gat.g_py[b, j],
+            0.0,
+            cfg,
+            rotated,
+            min_separation=True,
+        )
+    if kind == "pl":
+        a_key = (b * gat.n_aerial_points + gat.a_pt[b, i]) * gat.n_aerial_lines + gat.a_ln[b, j - mp]
+        g_key = gat.g_pt[b, i] * gat.n_ground_lines + gat.g_ln[b, j - mp]
+        # Ground tables are in the odom frame; only their vectors need the patch's prior rotation.
+        return _point_line_score(_take(gat.a_pl, a_key, None), _take(gat.g_pl, g_key, cos_sin), cfg, rotated)
+    n_al = gat.n_aerial_lines
+    a_key = (b * n_al + gat.a_ln[b, i - mp]) * n_al + gat.a_ln[b, j - mp]
+    g_key = gat.g_ln[b, i - mp] * gat.n_ground_lines + gat.g_ln[b, j - mp]
+    return _line_line_score(_take(gat.a_ll, a_key, None), _take(gat.g_ll, g_key, cos_sin), cfg, rotated)
 
 
-def _line_rows_scores(gat: _Gathered, r0: int, r1: int, cfg: AffinityConfig) -> torch.Tensor:
-    """s for line-association rows [r0, r1) against columns [r0, m): (P, r, m - r0)."""
-    lr0, lr1 = r0 - gat.n_point_assoc, r1 - gat.n_point_assoc
-    n_patches, n_al = gat.a_ln.shape[0], gat.n_aerial_lines
-    patch = torch.arange(n_patches, device=gat.a_ln.device)[:, None, None]
-    a_key = (patch * n_al + _rows(gat.a_ln, lr0, lr1)) * n_al + _cols(gat.a_ln, lr0)
-    g_key = _rows(gat.g_ln, lr0, lr1) * gat.n_ground_lines + _cols(gat.g_ln, lr0)
-    return _line_line_score(
-        _take(gat.a_ll, a_key, None), _take(gat.g_ll, g_key, gat.cos_sin), cfg, gat.cos_sin is not None
-    )
+def _gate(gat: _Gathered, r0: int, r1: int, c0: int, c1: int, kind: str, cfg: AffinityConfig) -> torch.Tensor:
+    """(P, r1 - r0, c1 - c0) bool: pairs of rows [r0, r1) and columns [c0, c1) (strict upper
+    triangle) that may score non-zero: the kind's table values within tolerance (which also
+    excludes shared primitives)."""
+    n_patches = gat.valid.shape[0]
+    mp = gat.n_point_assoc
+    patch = torch.arange(n_patches, device=gat.valid.device)[:, None, None]
+    if kind == "pp":
+        rows_a, cols_a, rows_g, cols_g = gat.a_pt[:, r0:r1], gat.a_pt[:, c0:c1], gat.g_pt[:, r0:r1], gat.g_pt[:, c0:c1]
+        n_a, n_g, tol = (gat.n_aerial_points, gat.n_aerial_points), (gat.n_ground_points,) * 2, cfg.epsilon_t_m
+        tables = gat.a_pp_gate, gat.g_pp_gate
+    elif kind == "pl":
+        rows_a, cols_a = gat.a_pt[:, r0:r1], gat.a_ln[:, c0 - mp : c1 - mp]
+        rows_g, cols_g = gat.g_pt[:, r0:r1], gat.g_ln[:, c0 - mp : c1 - mp]
+        n_a, n_g, tol = (gat.n_aerial_points, gat.n_aerial_lines), (gat.n_ground_points, gat.n_ground_lines), cfg.epsilon_t_m
+        tables = gat.a_pl_gate, gat.g_pl_gate
+    else:
+        rows_a, cols_a = gat.a_ln[:, r0 - mp : r1 - mp], gat.a_ln[:, c0 - mp : c1 - mp]
+        rows_g, cols_g = gat.g_ln[:, r0 - mp : r1 - mp], gat.g_ln[:, c0 - mp : c1 - mp]
+        n_a, n_g = (gat.n_aerial_lines,) * 2, (gat.n_ground_lines,) * 2
+        tol, tables = math.radians(cfg.epsilon_theta_deg), (gat.a_ll_gate, gat.g_ll_gate)
+    # int32 keys and in-place arithmetic: this runs on every pair, so memory traffic is the cost.
+    a_key = ((patch * n_a[0] + rows_a[:, :, None]) * n_a[1]).to(torch.int32) + cols_a[:, None, :].to(torch.int32)
+    g_key = (rows_g[:, :, None] * n_g[1]).to(torch.int32) + cols_g[:, None, :].to(torch.int32)
+    diff = tables[0].index_select(0, a_key.view(-1))
+    diff.sub_(tables[1].index_select(0, g_key.view(-1))).abs_()
+    ok = (diff <= tol + _GATE_SLACK).view(a_key.shape)
+    # q_i q_j is not gated here: pairs with q = 0 (padding included) score 0 and are dropped after scoring.
+    if c0 < r1:
+        ok &= torch.arange(c0, c1, device=ok.device)[None, None, :] > torch.arange(r0, r1, device=ok.device)[None, :, None]
+    return ok
 
 
-def _blocks(gat: _Gathered, cfg: AffinityConfig) -> Iterator[tuple[int, int, torch.Tensor]]:
-    """(r0, r1, X[:, r0:r1, r0:]) over the upper triangle in row blocks of ~block_pairs pairs.
+def _entries(gat: _Gathered, cfg: AffinityConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Non-zero strict-upper-triangle entries: indices (n, 3) of (patch, i, j) and M values (n,).
 
-    X = s q_i q_j, so M = cbrt(X); one-to-one conflicts, entries with M <= affinity_eps,
-    padding and the diagonal are zeroed. The cube root is left to the caller so that the
-    sparse path takes it on the few non-zeros only. Entries left of the diagonal inside a
-    block's own square are not used.
+    M = cbrt(s q_i q_j); one-to-one conflicts, entries with M <= affinity_eps and padding are
+    left out. Rows are evaluated in blocks of ~block_pairs pairs, which bounds peak memory.
     """
     n_patches, m = gat.valid.shape
     mp = gat.n_point_assoc
     rows = max(1, cfg.block_pairs // max(1, n_patches * m))
+    indices, values = [], []
     for start, stop in ((0, mp), (mp, m)):
         for r0 in range(start, stop, rows):
             r1 = min(r0 + rows, stop)
-            s = _point_rows_scores(gat, r0, r1, cfg) if r0 < mp else _line_rows_scores(gat, r0, r1, cfg)
-            conflict = (_rows(gat.ground_idx, r0, r1) == _cols(gat.ground_idx, r0)) | (
-                _rows(gat.aerial_idx, r0, r1) == _cols(gat.aerial_idx, r0)
-            )
-            product = s * _rows(gat.q, r0, r1) * _cols(gat.q, r0)
-            # Padding has index -1 on both sides, so it always "conflicts" and needs no own mask.
-            yield r0, r1, product.masked_fill(conflict | (product <= cfg.affinity_eps**3), 0.0)
+            spans = [(r0, mp, "pp"), (mp, m, "pl")] if r0 < mp else [(r0, m, "ll")]
+            for c0, c1, kind in spans:
+                if c1 <= c0:
+                    continue
+                nz = _gate(gat, r0, r1, c0, c1, kind, cfg).nonzero()
+                b, i, j = nz[:, 0], nz[:, 1] + r0, nz[:, 2] + c0
+                product = _pair_scores(gat, b, i, j, kind, cfg) * gat.q[b, i] * gat.q[b, j]
+                keep = product > cfg.affinity_eps**3
+                indices.append(torch.stack([b, i, j], 1)[keep])
+                values.append(product[keep].pow(1.0 / 3.0))
+    if not indices:
+        return torch.zeros(0, 3, dtype=torch.int64, device=gat.q.device), gat.q.new_zeros(0)
+    return torch.cat(indices), torch.cat(values)
 
 
 def affinity_matrix(
@@ -578,16 +657,52 @@ def affinity_matrix(
     """
     gat = _gather(ground, aerial, assoc, cfg, rotation_prior)
     n_patches, m = gat.valid.shape
+    index, value = _entries(gat, cfg)
     out = gat.q.new_zeros(n_patches, m, m)
-    for r0, r1, product in _blocks(gat, cfg):
-        block = product.pow(1.0 / 3.0)
-        # Keep the strict upper part of the block's own square, then mirror the block into the
-        # (still empty) columns r0:r1 below it: no full-size temporaries.
-        block[:, :, : r1 - r0] = block[:, :, : r1 - r0].triu(diagonal=1)
-        out[:, r0:r1, r0:] = block
-        out[:, r0:, r0:r1] += block.transpose(1, 2)
+    out[index[:, 0], index[:, 1], index[:, 2]] = value
+    out[index[:, 0], index[:, 2], index[:, 1]] = value
     out.diagonal(dim1=1, dim2=2).copy_(gat.valid)
     return out
+
+
+@dataclass(frozen=True)
+class AffinityEntries:
+    """The non-zero strict upper triangle of P affinity matrices (m, m), unit diagonal implied.
+
+    index: (n, 3) int64 (patch, i, j) with i < j; value: (n,) in (affinity_eps, 1]; valid:
+    (P, m) bool, the associations that get the unit diagonal.
+    """
+
+    index: torch.Tensor
+    value: torch.Tensor
+    valid: torch.Tensor
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        n_patches, m = self.valid.shape
+        return (n_patches, m, m)
+
+    def to_sparse(self) -> torch.Tensor:
+        """Symmetric coalesced sparse COO (P, m, m) with the unit diagonal on valid associations."""
+        upper, diag = self.index, self.valid.nonzero()
+        idx = torch.cat([upper, upper[:, [0, 2, 1]], torch.stack([diag[:, 0], diag[:, 1], diag[:, 1]], 1)])
+        val = torch.cat([self.value, self.value, self.value.new_ones(diag.shape[0])])
+        return torch.sparse_coo_tensor(idx.T, val, self.shape, check_invariants=False).coalesce()
+
+
+def affinity_entries(
+    ground: PrimitiveSet,
+    aerial: PrimitiveBatch,
+    assoc: Associations,
+    cfg: AffinityConfig,
+    *,
+    rotation_prior: torch.Tensor | None = None,
+) -> AffinityEntries:
+    """The affinity as its non-zero upper-triangle entries (what `affinity_matrix_sparse`
+    assembles; consumers that prune first skip building the full symmetric matrix)."""
+    gat = _gather(ground, aerial, assoc, cfg, rotation_prior)
+    index, value = _entries(gat, cfg)
+    return AffinityEntries(index, value, gat.valid)
 
 
 def affinity_matrix_sparse(
@@ -603,23 +718,7 @@ def affinity_matrix_sparse(
     Only the non-zero entries (> affinity_eps, both triangles, plus the unit diagonal of valid
     associations) are stored; peak memory is one row block plus the non-zeros.
     """
-    gat = _gather(ground, aerial, assoc, cfg, rotation_prior)
-    n_patches, m = gat.valid.shape
-    device = gat.q.device
-    indices, values = [], []
-    for r0, r1, product in _blocks(gat, cfg):
-        row = torch.arange(r0, r1, device=device)[:, None]
-        col = torch.arange(r0, m, device=device)[None, :]
-        keep = (product > 0) & (col > row)[None]
-        nz = keep.nonzero()
-        indices.append(nz + torch.tensor([0, r0, r0], device=device))
-        values.append(product[keep].pow(1.0 / 3.0))
-    upper_idx = torch.cat(indices) if indices else torch.zeros(0, 3, dtype=torch.int64, device=device)
-    upper_val = torch.cat(values) if values else gat.q.new_zeros(0)
-    diag = gat.valid.nonzero()
-    idx = torch.cat([upper_idx, upper_idx[:, [0, 2, 1]], torch.stack([diag[:, 0], diag[:, 1], diag[:, 1]], 1)])
-    val = torch.cat([upper_val, upper_val, upper_val.new_ones(diag.shape[0])])
-    return torch.sparse_coo_tensor(idx.T, val, (n_patches, m, m), check_invariants=False).coalesce()
+    return affinity_entries(ground, aerial, assoc, cfg, rotation_prior=rotation_prior).to_sparse()
 
 
 def affinity(

@@ -91,7 +91,7 @@ def solve_clipper(
       steeply beyond). Supports above `cfg.densest_max_exact` (default 50) use greedy peeling,
       O(s^2) and a 1/2-approximation, instead. This rounding loops over problems.
 
-    Args:
+    Args (torch tensors, or numpy arrays / nested lists, which are converted keeping their dtype):
         M: (B, n, n) or (n, n) affinities, symmetric, finite and nonnegative (padded entries
             too, though their values are ignored), float32 or float64, on any device; results
             come back with M's device and dtype. The diagonal is replaced by ones unless
@@ -100,7 +100,7 @@ def solve_clipper(
             its diagonal is ignored (treated as allowed). Defaults to the pattern M > 0, as
             CLIPPER builds it. Like CLIPPER's C++, pairs with C = 0 keep their affinity, and the
             penalty removes them.
-        valid: optional (B, n) bool marking real associations; padded entries are never selected
+        valid: optional (B, n) (or (n,) for one problem) bool marking real associations; padded entries are never selected
             and do not influence the others. Default: all valid.
         u0: optional (B, n) or (n,) nonnegative start vector; default U[0, 1) drawn from
             `generator` (or from a generator seeded with `cfg.seed`), so runs are reproducible.
@@ -172,8 +172,23 @@ def solve_clipper(
 def _check_inputs(
     M: Tensor, C: Tensor | None, valid: Tensor | None, u0: Tensor | None
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
-    """Validate and batch the inputs: M (B, n, n), C like M or None, valid (B, n), u0 (B, n) or None."""
-    if not isinstance(M, Tensor) or not M.is_floating_point():
+    """Validate and batch the inputs: M (B, n, n), C like M or None, valid (B, n), u0 (B, n) or None.
+
+    numpy arrays (and nested lists) are converted with `torch.as_tensor`, keeping their dtype.
+    """
+    def as_tensor(x: object, name: str) -> Tensor:
+        if isinstance(x, Tensor):
+            return x
+        try:
+            return torch.as_tensor(x)
+        except (TypeError, ValueError, RuntimeError) as error:
+            raise ValueError(f"{name} is not convertible to a tensor ({error})") from None
+
+    M = as_tensor(M, "M")
+    C = None if C is None else as_tensor(C, "C")
+    valid = None if valid is None else as_tensor(valid, "valid")
+    u0 = None if u0 is None else as_tensor(u0, "u0")
+    if not M.is_floating_point():
         raise ValueError(f"M must be a floating-point tensor, got {getattr(M, 'dtype', type(M))}")
     if M.dim() == 2:
         M = M.unsqueeze(0)
@@ -188,7 +203,9 @@ def _check_inputs(
         C = C.to(M.device)
     if valid is None:
         valid = torch.ones((B, n), dtype=torch.bool, device=M.device)
-    elif valid.shape != (B, n) or valid.dtype != torch.bool:
+    elif valid.dim() == 1 and B == 1:
+        valid = valid.unsqueeze(0)
+    if valid.shape != (B, n) or valid.dtype != torch.bool:
         raise ValueError(
             f"valid must be a bool tensor of shape {(B, n)}, got {valid.dtype} {tuple(valid.shape)}"
         )

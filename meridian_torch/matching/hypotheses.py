@@ -104,19 +104,30 @@ def register_sets(
     dtype = src_pt.dtype
     B = n_patches * n_sets
 
-    def per_set(x: Tensor) -> Tensor:
-        return x[:, None].expand(n_patches, n_sets, *x.shape[1:]).reshape(B, *x.shape[1:])
-
     weights = (sets.masks & assoc.valid[:, None, :]).to(dtype)
-    result = register_se2(
-        per_set(src_pt),
-        per_set(dst_pt),
-        weights[..., :k].reshape(B, k),
-        per_set(src_ln),
-        per_set(dst_ln),
-        weights[..., k:].reshape(B, m - k),
-        config=config,
-    )
+    patch = torch.arange(n_patches, device=weights.device).repeat_interleave(n_sets)[:, None]
+
+    def members(w: Tensor) -> tuple[Tensor, Tensor]:
+        """Weights (B, width) and indices (B, width) of each set's few members, instead of all m
+        associations; index n (one past the end) marks padding."""
+        w = w.reshape(B, -1)
+        n = w.shape[1]
+        used = w > 0
+        width = max(int(used.sum(1).max()) if n else 0, 1)
+        if n == 0:
+            return w.new_zeros(B, width), torch.zeros(B, width, dtype=torch.int64, device=w.device)
+        index = torch.sort(used.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :width]
+        index = torch.where(used.gather(1, index), index, n)
+        return torch.cat([w, w.new_zeros(B, 1)], 1).gather(1, index), index
+
+    def take(geometry: Tensor, index: Tensor) -> Tensor:
+        padded = torch.cat([geometry, geometry.new_zeros(n_patches, 1, *geometry.shape[2:])], 1)
+        return padded[patch, index]
+
+    w_pt, i_pt = members(weights[..., :k])
+    w_ln, i_ln = members(weights[..., k:])
+    src_pt_c, dst_pt_c, src_ln_c, dst_ln_c = take(src_pt, i_pt), take(dst_pt, i_pt), take(src_ln, i_ln), take(dst_ln, i_ln)
+    result = register_se2(src_pt_c, dst_pt_c, w_pt, src_ln_c, dst_ln_c, w_ln, config=config)
     shaped = {name: getattr(result, name).reshape(n_patches, n_sets, *getattr(result, name).shape[1:])
               for name in result.__dataclass_fields__}
     shaped["valid"] = shaped["valid"] & sets.valid

@@ -6,17 +6,18 @@ registration of every set -> greedy clustering into L weighted hypotheses T_worl
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import torch
 from torch import Tensor
 
-from meridian_torch.matching.affinity import affinity
-from meridian_torch.matching.associations import putative_associations
+from meridian_torch.matching.affinity import affinity, affinity_entries
+from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.config import MatchConfig
 from meridian_torch.matching.hypotheses import Hypotheses, cluster_hypotheses
-from meridian_torch.matching.particles import InlierSets, sample_inlier_sets
+from meridian_torch.matching.particles import InlierSets, patch_seeds, sample_inlier_sets
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet, stack_primitive_sets
 
 __all__ = ["match_submap", "match_arrays"]
@@ -35,6 +36,35 @@ def _clipper_sets(M: Tensor, valid: Tensor, config: MatchConfig, generator: torc
         valid=ok,
         iterations=result.iterations,
         n_particles=1,
+    )
+
+
+def _slice_associations(assoc: Associations, part: slice) -> Associations:
+    return dataclasses.replace(
+        assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part], cosine=assoc.cosine[part]
+    )
+
+
+def _slice_batch(batch: PrimitiveBatch, part: slice) -> PrimitiveBatch:
+    return PrimitiveBatch(**{f.name: getattr(batch, f.name)[part] for f in dataclasses.fields(batch)})
+
+
+def _concat_sets(chunks: list[InlierSets]) -> InlierSets:
+    """InlierSets of consecutive patch chunks as one, padded to the largest number of sets."""
+    if len(chunks) == 1:
+        return chunks[0]
+    n_sets = max(c.masks.shape[1] for c in chunks)
+
+    def pad(x: Tensor) -> Tensor:
+        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, n_sets - x.shape[1]))
+
+    return InlierSets(
+        masks=torch.cat([pad(c.masks) for c in chunks]),
+        counts=torch.cat([pad(c.counts) for c in chunks]),
+        objective=torch.cat([pad(c.objective) for c in chunks]),
+        valid=torch.cat([pad(c.valid) for c in chunks]),
+        iterations=torch.cat([c.iterations for c in chunks]),
+        n_particles=chunks[0].n_particles,
     )
 
 
@@ -74,11 +104,22 @@ def match_submap(
     assoc = putative_associations(
         ground, aerial, k_prim=ac.k_prim, direction=ac.direction, min_line_length_m=ac.min_line_length_m
     )
-    M = affinity(ground, aerial, assoc, cfg.affinity, rotation_prior=prior)
     if cfg.solver == "clipper":
+        M = affinity(ground, aerial, assoc, cfg.affinity, rotation_prior=prior)
         sets = _clipper_sets(M, assoc.valid, cfg, generator)
     else:
-        sets = sample_inlier_sets(M, assoc.valid, assoc.pairs, cfg.particles, generator)
+        # Seeds are drawn per patch up front, so a patch's result is the same in any chunking.
+        seeds = patch_seeds(len(aerial), generator)
+        chunks = []
+        for c0 in range(0, len(aerial), cfg.patch_chunk):
+            part = slice(c0, c0 + cfg.patch_chunk)
+            assoc_c, aerial_c = _slice_associations(assoc, part), _slice_batch(aerial, part)
+            M = affinity_entries(
+                ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
+            )
+            chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
+            del M
+        sets = _concat_sets(chunks)
     return cluster_hypotheses(
         sets,
         assoc,
@@ -91,26 +132,64 @@ def match_submap(
     )
 
 
-def _as_tensor(x: object, dtype: torch.dtype, shape_tail: tuple[int, ...]) -> Tensor:
-    t = torch.as_tensor(x, dtype=dtype)
-    return t.reshape(-1, *shape_tail)
+def _array(x: object, name: str, tail: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+    """`x` (numpy, torch, nested lists) as a CPU tensor of shape (N, *tail); an empty input of
+    any shape counts as N = 0. Wrong shapes and non-finite values raise ValueError naming `name`."""
+    if x is None:
+        raise ValueError(f"{name}: expected an array of shape (N, {', '.join(map(str, tail))}), got None")
+    try:
+        t = torch.as_tensor(x).detach().cpu()
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise ValueError(f"{name}: not convertible to an array ({error})") from None
+    if t.numel() == 0:
+        return torch.zeros((0, *tail), dtype=dtype)
+    if t.dim() != 1 + len(tail) or tuple(t.shape[1:]) != tail:
+        want = "(N" + "".join(f", {n}" for n in tail) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
+    if t.is_complex() or t.dtype == torch.bool:
+        raise ValueError(f"{name}: expected real numbers, got dtype {t.dtype}")
+    t = t.to(dtype)
+    if dtype.is_floating_point and not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return t
 
 
-def _primitive_set(points: object, point_desc: object, lines: object, line_kinds: object, line_desc: object) -> PrimitiveSet:
-    pts = _as_tensor(points, torch.float32, (2,))
-    lns = _as_tensor(lines, torch.float32, (2, 2))
-    pd = torch.as_tensor(point_desc, dtype=torch.float32)
-    ld = torch.as_tensor(line_desc, dtype=torch.float32)
-    dim = pd.shape[-1] if pd.dim() == 2 else ld.shape[-1]
-    return PrimitiveSet(
-        points_xy=pts,
-        point_descriptors=pd.reshape(-1, dim),
-        point_segment_ids=torch.arange(pts.shape[0]),
-        line_endpoints=lns,
-        line_kinds=torch.as_tensor(line_kinds, dtype=torch.int64).reshape(-1),
-        line_descriptors=ld.reshape(-1, dim),
-        line_segment_ids=torch.arange(lns.shape[0]),
-    )
+def _descriptors(x: object, name: str, n: int) -> Tensor:
+    """(n, D) float32 descriptors; (0, 0) when n == 0 and the input is empty."""
+    if x is None:
+        raise ValueError(f"{name}: expected an array of shape ({n}, D), got None")
+    t = torch.as_tensor(x).detach().cpu()
+    if t.numel() == 0 and n == 0:
+        return torch.zeros((0, t.shape[-1] if t.dim() == 2 else 0), dtype=torch.float32)
+    if t.dim() != 2 or t.shape[0] != n or t.shape[1] == 0:
+        raise ValueError(f"{name}: expected shape ({n}, D), one descriptor per primitive, got {tuple(t.shape)}")
+    t = t.to(torch.float32)
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return t
+
+
+def _primitive_set(
+    points: object, point_desc: object, lines: object, line_kinds: object, line_desc: object, names: tuple[str, ...]
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Validated (points, point descriptors, lines, kinds, line descriptors) of one primitive set."""
+    pts = _array(points, names[0], (2,), torch.float32)
+    lns = _array(lines, names[2], (2, 2), torch.float32)
+    kinds = _array(line_kinds, names[3], (), torch.int64)
+    if kinds.shape[0] != lns.shape[0]:
+        raise ValueError(f"{names[3]}: expected {lns.shape[0]} kinds (one per line), got {kinds.shape[0]}")
+    if bool(((kinds < 0) | (kinds > 2)).any()):
+        raise ValueError(f"{names[3]}: kinds must be 0 (segment), 1 (ray) or 2 (infinite line)")
+    if bool(((lns[:, 1] - lns[:, 0]).norm(dim=-1) <= 0).any()):
+        raise ValueError(f"{names[2]}: a line's two endpoints coincide (its direction is undefined)")
+    return pts, _descriptors(point_desc, names[1], pts.shape[0]), lns, kinds, _descriptors(line_desc, names[4], lns.shape[0])
+
+
+def _with_dim(fields: tuple[Tensor, ...], dim: int) -> PrimitiveSet:
+    pts, pd, lns, kinds, ld = fields
+    pd = pd if pd.shape[0] else pd.new_zeros(0, dim)
+    ld = ld if ld.shape[0] else ld.new_zeros(0, dim)
+    return PrimitiveSet(pts, pd, torch.arange(pts.shape[0]), lns, kinds, ld, torch.arange(lns.shape[0]))
 
 
 def match_arrays(
@@ -125,29 +204,76 @@ def match_arrays(
     aerial_line_kinds: Sequence[object],
     aerial_line_desc: Sequence[object],
     *,
-    rotation_prior: Tensor | float | None = None,
+    rotation_prior: object = None,
     config: MatchConfig | None = None,
     generator: torch.Generator | None = None,
 ) -> Hypotheses:
-    """`match_submap` on plain arrays (numpy or torch, converted to float32 / int64).
+    """`match_submap` on plain arrays: numpy arrays, torch tensors or nested lists (CPU, float32).
 
     Ground (one submap, odom frame, x-y metres):
         ground_points (Ng, 2); ground_point_desc (Ng, D);
-        ground_lines (Ngl, 2, 2) two endpoints per line; ground_line_kinds (Ngl,) with
+        ground_lines (Ngl, 2, 2) two endpoints per line; ground_line_kinds (Ngl,) integers with
         0 = segment between the endpoints, 1 = ray from endpoint 0 through endpoint 1,
         2 = infinite line through both; ground_line_desc (Ngl, D).
-    Aerial (P patches, world frame, metres, x east, y north): sequences of length P of
-        points (Na_p, 2), point descriptors (Na_p, D), lines (Nal_p, 2, 2), kinds (Nal_p,)
-        and line descriptors (Nal_p, D). Descriptors need not be normalised (cosines are used).
+    Aerial (P patches, world frame, metres, x east, y north, right-handed): five sequences of
+        length P with each patch's points (Na_p, 2), point descriptors (Na_p, D), lines
+        (Nal_p, 2, 2), kinds (Nal_p,) and line descriptors (Nal_p, D).
+    Any of these may be empty (no points, no lines, or a patch without primitives; an empty
+    array of any shape, e.g. `np.zeros((0, 2))` or `[]`). Descriptors need not be normalised
+    (cosines are used); D must be the same everywhere.
+
+    Args:
+        rotation_prior: known yaw of T_world_odom in radians (a float for all patches, or P
+            values); None = unknown rotation.
+        config: matching parameters (default `MatchConfig()`); generator: seeds the solver.
 
     Returns:
-        `Hypotheses`; `T_world_odom[p, l]` (3 x 3) maps odom x-y into world x-y for patch p.
+        `Hypotheses` with P rows: `T_world_odom[p, l]` (3 x 3 homogeneous SE(2)) maps odom x-y
+        into world x-y for patch p, hypotheses heaviest first; `probability`, `valid` and
+        `association_mask` as documented there. Patches without usable associations get only
+        invalid rows (valid False, probability 0).
+
+    Raises:
+        ValueError: naming the argument, on wrong shapes, non-finite values, unknown line kinds,
+            lines with coinciding endpoints, descriptor dimensions that differ, sequences of
+            different lengths, no patch at all, or a rotation prior of the wrong size.
     """
-    ground = _primitive_set(ground_points, ground_point_desc, ground_lines, ground_line_kinds, ground_line_desc)
+    names = ("points", "point_desc", "lines", "line_kinds", "line_desc")
+    ground = _primitive_set(
+        ground_points, ground_point_desc, ground_lines, ground_line_kinds, ground_line_desc,
+        tuple(f"ground_{n}" for n in names),
+    )
+    sequences = (aerial_points, aerial_point_desc, aerial_lines, aerial_line_kinds, aerial_line_desc)
+    for name, seq in zip(names, sequences):
+        if isinstance(seq, (str, bytes)) or not hasattr(seq, "__len__"):
+            raise ValueError(f"aerial_{name}: expected a sequence with one array per patch")
+    lengths = {f"aerial_{n}": len(seq) for n, seq in zip(names, sequences)}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"aerial sequences must have one entry per patch, got lengths {lengths}")
+    n_patches = len(aerial_points)
+    if n_patches == 0:
+        raise ValueError("aerial_points: at least one aerial patch is needed")
     patches = [
-        _primitive_set(*fields)
-        for fields in zip(aerial_points, aerial_point_desc, aerial_lines, aerial_line_kinds, aerial_line_desc, strict=True)
+        _primitive_set(*fields, tuple(f"aerial_{n}[{p}]" for n in names))
+        for p, fields in enumerate(zip(*sequences))
     ]
+    dims = {int(d.shape[1]) for fields in [ground, *patches] for d in (fields[1], fields[4]) if d.shape[0]}
+    if len(dims) > 1:
+        raise ValueError(f"descriptors (ground_point_desc, aerial_line_desc, ...) must share one dimension D, got {sorted(dims)}")
+    dim = dims.pop() if dims else 1
+    prior = None
+    if rotation_prior is not None:
+        try:
+            flat = torch.as_tensor(rotation_prior).reshape(-1)
+        except (TypeError, ValueError, RuntimeError) as error:
+            raise ValueError(f"rotation_prior: not convertible to an array ({error})") from None
+        prior = _array(flat, "rotation_prior", (), torch.float32)
+        if prior.shape[0] not in (1, n_patches):
+            raise ValueError(f"rotation_prior: expected one yaw or {n_patches} (one per patch), got {prior.shape[0]}")
     return match_submap(
-        ground, stack_primitive_sets(patches), rotation_prior=rotation_prior, config=config, generator=generator
+        _with_dim(ground, dim),
+        stack_primitive_sets([_with_dim(p, dim) for p in patches]),
+        rotation_prior=prior,
+        config=config,
+        generator=generator,
     )

@@ -27,21 +27,25 @@ largest entries of x. Sets smaller than `min_set_size` or using a ground or aeri
 twice are discarded, identical sets are merged (hash keys + exact comparison) with their
 particle counts summed, and the sets are ranked by J(S) = 1_S' M 1_S / |S| (unpenalised M).
 
-Particles x iterations on a CPU: the `ParticleConfig` defaults (64 x 200) and the measurement
-behind them are in its field descriptions. Early stopping rarely fires before T because the
-annealed noise keeps the objective moving.
+Pruning: before sampling, each patch keeps its `max_associations` best supported associations
+(`support_pruning`, two-step walk counts on the affinity graph); masks are reported over all m.
+Particles x iterations on a CPU: the `ParticleConfig` defaults (32 x 100 on 128 associations)
+and the measurement behind them are in its field descriptions. Early stopping rarely fires
+before T because the annealed noise keeps the objective moving.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.config import ParticleConfig
 
-__all__ = ["InlierSets", "sample_inlier_sets", "patch_seeds"]
+__all__ = ["InlierSets", "sample_inlier_sets", "patch_seeds", "support_pruning"]
 
 # splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
 _MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
@@ -115,8 +119,9 @@ def _normal(table: Tensor, words: Tensor, m: int) -> Tensor:
     random offset with a random sign. Hashing every entry would cost as much as the drift."""
     offset = _srl(words, 1) % _TABLE_SIZE
     sign = 1.0 - 2.0 * (words & 1).to(table.dtype)
-    index = offset[:, None, :] + torch.arange(m, device=words.device)[None, :, None]
-    return table[index] * sign[:, None, :]
+    # Rows of the (TABLE_SIZE, m) sliding-window view are contiguous copies (no index tensor).
+    windows = table.unfold(0, m, 1).index_select(0, offset.flatten()).view(*offset.shape, m)
+    return (windows * sign[..., None]).transpose(1, 2)
 
 
 def patch_seeds(n_patches: int, generator: torch.Generator) -> Tensor:
@@ -147,7 +152,11 @@ class _BlockOperator:
         size = keep.numel() * self.m
         crow = torch.zeros(size + 1, dtype=torch.int64, device=keep.device)
         crow[1:] = torch.cumsum(torch.bincount(rows, minlength=size), 0)
-        self.csr = torch.sparse_csr_tensor(crow, (b * self.m + self.col)[use], self.values[use], (size, size))
+        with warnings.catch_warnings():  # "sparse CSR support is in beta"
+            warnings.simplefilter("ignore", UserWarning)
+            self.csr = torch.sparse_csr_tensor(
+                crow, (b * self.m + self.col)[use], self.values[use], (size, size), check_invariants=False
+            )
 
     def keep(self, keep: Tensor) -> None:
         """Restrict to the batch entries `keep` (ascending indices into the current batch)."""
@@ -174,8 +183,8 @@ def _penalised(M: Tensor, d: Tensor) -> Tensor:
     M = (M if M.is_sparse else M.to_sparse()).coalesce()
     values = M.values()
     return torch.sparse_coo_tensor(
-        M.indices(), values + d[M.indices()[0]] * (values != 0), M.shape, check_invariants=False
-    ).coalesce()
+        M.indices(), values + d[M.indices()[0]] * (values != 0), M.shape, check_invariants=False, is_coalesced=True
+    )
 
 
 def _drift(A: _BlockOperator, d: Tensor, validf: Tensor, x: Tensor) -> Tensor:
@@ -254,6 +263,55 @@ def _round(A: _BlockOperator, d: Tensor, valid: Tensor, x: Tensor, rounding: str
     return torch.zeros_like(take).scatter_(-1, order, take)
 
 
+def support_pruning(
+    M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Keep the k associations per patch with the largest two-step walk count w = M' (M' 1),
+    M' = M without its diagonal (the weighted number of paths of length two, which grows with
+    the square of the size of a consistent set an association belongs to); associations with no
+    off-diagonal support are always dropped (they cannot join a set of two or more).
+
+    Args: M (P, m, m) dense or sparse COO, or its `AffinityEntries`; valid (P, m) bool; pairs
+        (P, m, 2) int64; k >= 1.
+
+    Returns:
+        M_kept (P, k', k') sparse COO (unit diagonal on kept associations), valid_kept (P, k'),
+        pairs_kept (P, k', 2) and index (P, k') int64 into the m associations (m on padding),
+        k' = min(k, m). Kept associations stay in their original order, so a patch's result does
+        not depend on the others.
+    """
+    n_patches, m = valid.shape
+    if isinstance(M, AffinityEntries):
+        (b, i, j), value = M.index.T, M.value
+    else:
+        M = (M if M.is_sparse else M.to_sparse()).coalesce()
+        upper = M.indices()[1] < M.indices()[2]
+        (b, i, j), value = M.indices()[:, upper], M.values()[upper]
+    validf = valid.to(value.dtype)
+
+    def times(x: Tensor) -> Tensor:  # M' x for x (P, m), from the upper-triangle entries
+        out = torch.zeros(n_patches * m, dtype=x.dtype, device=x.device)
+        out.index_add_(0, b * m + i, value * x[b, j]).index_add_(0, b * m + j, value * x[b, i])
+        return out.view(n_patches, m)
+
+    degree = times(validf) * validf
+    walk = times(degree)
+    score = walk.masked_fill(~valid | (degree <= 0), float("-inf"))
+    k = min(k, m)
+    top = torch.sort(score, dim=1, descending=True, stable=True).indices[:, :k]
+    index = torch.sort(top, dim=1).values
+    kept_valid = torch.isfinite(score.gather(1, index))
+    index = index.masked_fill(~kept_valid, m)
+    new_of_old = torch.full((n_patches, m + 1), -1, dtype=torch.int64, device=valid.device)
+    new_of_old.scatter_(1, index, torch.arange(k, device=valid.device).expand(n_patches, k).contiguous())
+    new_of_old[:, m] = -1
+    ni, nj = new_of_old[b, i], new_of_old[b, j]
+    use = (ni >= 0) & (nj >= 0)
+    kept = AffinityEntries(torch.stack([b[use], ni[use], nj[use]], 1), value[use], kept_valid)
+    pairs_kept = torch.cat([pairs, pairs.new_full((n_patches, 1, 2), -1)], 1).gather(1, index[..., None].expand(-1, -1, 2))
+    return kept.to_sparse(), kept_valid, pairs_kept, index
+
+
 def _one_to_one(masks: Tensor, pairs: Tensor) -> Tensor:
     """(P, N) bool: no ground and no aerial primitive is used twice by a set."""
     ok = torch.ones(masks.shape[:2], dtype=torch.bool, device=masks.device)
@@ -293,7 +351,7 @@ def _merge(masks: Tensor, keep: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 @torch.no_grad()
 def sample_inlier_sets(
-    M: Tensor,
+    M: Tensor | AffinityEntries,
     valid: Tensor,
     pairs: Tensor,
     cfg: ParticleConfig | None = None,
@@ -305,7 +363,9 @@ def sample_inlier_sets(
 
     Args:
         M: (P, m, m) affinity, symmetric, in [0, 1], unit diagonal on valid associations and zero
-            on padded rows / columns; dense or sparse COO (as `matching.affinity.affinity` returns).
+            on padded rows / columns; dense or sparse COO (as `matching.affinity.affinity` returns),
+            or `AffinityEntries` (`matching.affinity.affinity_entries`; pruning then never builds
+            the full matrix).
         valid: (P, m) bool, real associations.
         pairs: (P, m, 2) int64 (ground index, aerial index) of each association (-1 on padding);
             used for the one-to-one check.
@@ -327,10 +387,23 @@ def sample_inlier_sets(
         if generator is None:
             generator = torch.Generator(device=device).manual_seed(cfg.seed)
         seeds = patch_seeds(n_patches, generator).to(device)
+    if cfg.max_associations is not None and cfg.max_associations < m:
+        M, valid, pairs, index = support_pruning(M, valid, pairs, cfg.max_associations)
+        kept = _sample(M, valid, pairs, cfg, seeds.to(device=device, dtype=torch.int64))
+        masks = torch.zeros(kept.masks.shape[:2] + (m + 1,), dtype=torch.bool, device=device)
+        masks.scatter_(2, index[:, None, :].expand_as(kept.masks), kept.masks)
+        return InlierSets(masks[..., :m], kept.counts, kept.objective, kept.valid, kept.iterations, kept.n_particles)
+    if isinstance(M, AffinityEntries):
+        M = M.to_sparse()
+    return _sample(M, valid, pairs, cfg, seeds.to(device=device, dtype=torch.int64))
+
+
+def _sample(M: Tensor, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:
+    """`sample_inlier_sets` on the (possibly pruned) problem."""
+    n_patches, m = valid.shape
     dtype = M.dtype
     d = valid.to(dtype).sum(-1)
     penalised = _penalised(M, d)
-    seeds = seeds.to(device=device, dtype=torch.int64)
     x, iterations = _run_dynamics(_BlockOperator(penalised), d, valid, cfg, seeds)
 
     masks = _round(_BlockOperator(penalised), d, valid, x, cfg.rounding)
