@@ -1,0 +1,246 @@
+"""Ground mapping pipeline: RGB-D frames with odometry -> tracked 3D segments -> 2D submaps.
+
+`GroundMapper` is online: `add_frame` (or `add_frames` for a batch, which segments the frames
+together) returns the submaps completed by those frames; `finish` flushes the last one.
+`map_ground` runs it over a whole sequence. See ground_observations / ground_tracking /
+ground_submaps for the stages and the reference rules they follow.
+
+Per frame: segment, describe the masks, build the observations; a global (place-recognition)
+descriptor is computed only when the camera moved `frame_descriptor_dist_m` since the last one;
+update the tracker; check the submap trigger. A submap's centre is the frame nearest in time to
+the median of its NEW segments' (first_seen + last_seen) / 2 (non-decreasing; the reference
+takes the mean over all selected segments, which with few segments per frame reaches back to the
+start of the run); `GroundSubmap.time`,
+`T_odom_base` and `path_length_m` are that frame's. Its `frame_descriptors` are the global
+descriptors of the frames in the window where all its segments were in view (the reference's
+[min last_seen, max first_seen], else [min first_seen, max last_seen]) whose camera is within the
+submap radius, thinned to one per `frame_descriptor_dist_m`; if none, the descriptor of the frame
+with one nearest in time to the centre.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from meridian_torch.config import GroundMapConfig, MeridianConfig
+from meridian_torch.io.camera import CameraModel
+from meridian_torch.io.sequence import Frame, SequenceReader
+from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.mapping.ground_observations import observe_frames
+from meridian_torch.mapping.ground_submaps import SubmapGeometry, SubmapTrigger, submap_primitives, thin_by_distance
+from meridian_torch.mapping.ground_tracking import SegmentTracker, TrackedSegment
+from meridian_torch.perception.factory import build_ground_perception
+from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
+from meridian_torch.runtime import Runtime
+from meridian_torch.types import GroundSubmap
+
+__all__ = ["GroundMapper", "map_ground", "ground_map_config_dict"]
+
+
+@dataclass
+class _FrameRecord:
+    time: float
+    T_odom_base: np.ndarray
+    camera_xyz: np.ndarray
+    path_length_m: float
+    descriptor: torch.Tensor | None
+
+
+class GroundMapper:
+    """Online ground mapping of one RGB-D sequence (frames must come in time order)."""
+
+    def __init__(
+        self,
+        cfg: GroundMapConfig,
+        primitives: PrimitiveConfig,
+        camera: CameraModel,
+        segmenter: Segmenter,
+        describer: SegmentDescriber,
+        global_describer: GlobalDescriber,
+        runtime: Runtime,
+    ) -> None:
+        self.cfg = cfg
+        self.primitives = primitives
+        self.camera = camera
+        self.segmenter = segmenter
+        self.describer = describer
+        self.global_describer = global_describer
+        self.runtime = runtime
+        self.tracker = SegmentTracker(cfg.tracking)
+        self.trigger = SubmapTrigger(cfg)
+        self.frames: list[_FrameRecord] = []
+        self.last_geometry: SubmapGeometry | None = None  # of the last submap (plots, evaluation)
+        self.geometries: list[SubmapGeometry] = []
+        self._last_descriptor_xyz: np.ndarray | None = None
+        self._last_submap_time = -np.inf
+        self._T_base_camera = np.asarray(camera.T_base_camera, dtype=np.float64)
+        self._finished = False
+
+    @classmethod
+    def from_config(cls, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime) -> "GroundMapper":
+        # perception.ground_engine decides whether models run in torch or onnxruntime
+        segmenter, describer, global_describer = build_ground_perception(cfg.perception)
+        return cls(cfg.ground_map, cfg.primitives, camera, segmenter, describer, global_describer, runtime)
+
+    @property
+    def num_submaps(self) -> int:
+        return len(self.geometries)
+
+    def add_frame(self, frame: Frame) -> list[GroundSubmap]:
+        """Process one frame; returns the submaps it completed (usually none or one)."""
+        return self.add_frames([frame])
+
+    def add_frames(self, frames: Sequence[Frame]) -> list[GroundSubmap]:
+        """Process frames in time order, segmenting them as one batch; returns completed submaps."""
+        if self._finished:
+            raise RuntimeError("GroundMapper.finish() was called; create a new mapper for a new sequence")
+        if not frames:
+            return []
+        device, dtype = self.runtime.device, self.runtime.dtype
+        with torch.inference_mode():
+            images = torch.from_numpy(np.stack([f.rgb for f in frames])).to(device)
+            images = images.permute(0, 3, 1, 2).to(dtype).div_(255.0)
+            depths = np.stack([f.depth for f in frames])
+            T_odom_base = np.stack([np.asarray(f.T_odom_base, dtype=np.float64) for f in frames])
+            T_odom_camera = T_odom_base @ self._T_base_camera
+            times = np.array([f.timestamp for f in frames])
+            if self.frames and times[0] <= self.frames[-1].time:
+                raise ValueError(f"frame time {times[0]} is not after the previous frame's {self.frames[-1].time}")
+
+            # global descriptors only every frame_descriptor_dist_m of camera travel
+            wanted, last = [], self._last_descriptor_xyz
+            for b in range(len(frames)):
+                xyz = T_odom_camera[b, :3, 3]
+                if last is None or np.linalg.norm(xyz - last) >= self.cfg.frame_descriptor_dist_m:
+                    wanted.append(b)
+                    last = xyz
+            self._last_descriptor_xyz = last
+            global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32) if wanted else None
+
+            observations = observe_frames(images, depths, T_odom_camera, times, self.segmenter, self.describer,
+                                          self.camera, self.cfg.observation)
+            submaps = []
+            for b, obs in enumerate(observations):
+                path = 0.0
+                if self.frames:
+                    step = np.linalg.norm(T_odom_base[b, :3, 3] - self.frames[-1].T_odom_base[:3, 3])
+                    path = self.frames[-1].path_length_m + float(step)
+                desc = global_desc[wanted.index(b)] if b in wanted else None
+                self.frames.append(_FrameRecord(float(times[b]), T_odom_base[b], T_odom_camera[b, :3, 3].copy(),
+                                                path, desc))
+                self.tracker.update(obs)
+                self.trigger.observe(self.tracker)
+                submap = self._maybe_submap(force=False)
+                if submap is not None:
+                    submaps.append(submap)
+                self.trigger.prune(self.tracker)
+        return submaps
+
+    def finish(self) -> list[GroundSubmap]:
+        """End of the sequence: clean up the live segments and make a last submap from any new ones."""
+        if self._finished or not self.frames:
+            self._finished = True
+            return []
+        self._finished = True
+        with torch.inference_mode():
+            self.tracker.finish()
+            self.trigger.observe(self.tracker)
+            submap = self._maybe_submap(force=True)
+        return [] if submap is None else [submap]
+
+    def map_sequence(
+        self, reader: SequenceReader, progress: Callable[[int, int], None] | None = None
+    ) -> list[GroundSubmap]:
+        """Every frame of `reader` in batches of `batch_size`, then `finish`: all submaps."""
+        n = len(reader)
+        batch = self.cfg.batch_size
+        submaps: list[GroundSubmap] = []
+        if progress is not None:
+            progress(0, n)
+        for start in range(0, n, batch):
+            submaps += self.add_frames([reader[i] for i in range(start, min(start + batch, n))])
+            if progress is not None:
+                progress(min(start + batch, n), n)
+        return submaps + self.finish()
+
+    # ---------------------------------------------------------------------------- submaps
+
+    def _maybe_submap(self, force: bool) -> GroundSubmap | None:
+        segments = self.trigger.select(self.tracker, self.frames[-1].path_length_m, force=force)
+        if segments is None:
+            return None
+        # centred on the NEW segments (median of their mid times), not on all selected ones as the
+        # reference: when segments are few, the fill-up reaches back to the start of the run and
+        # long-tracked segments (a road) drag the time back by minutes; the gates then skip every
+        # later submap
+        new = segments[: len(self.trigger.pending)]
+        mid = float(np.median([0.5 * (s.first_seen + s.last_seen) for s in new]))
+        mid = max(mid, self._last_submap_time)
+        times = np.array([f.time for f in self.frames])
+        centre = int(np.argmin(np.abs(times - mid)))
+        record = self.frames[centre]
+        if not self.trigger.gate(record.time, record.path_length_m):
+            return None
+        prims, geometry = submap_primitives(segments, record.camera_xyz, self.cfg, self.primitives,
+                                            self.tracker.cfg.segment_voxel_m)
+        self.trigger.commit(segments, record.time, record.path_length_m)
+        self._last_submap_time = mid
+        self.last_geometry = geometry
+        self.geometries.append(geometry)
+        device, dtype = self.runtime.device, self.runtime.dtype
+        return GroundSubmap(
+            index=len(self.geometries) - 1,
+            time=record.time,
+            T_odom_base=record.T_odom_base.copy(),
+            path_length_m=record.path_length_m,
+            primitives=prims.to(device=device, dtype=dtype),
+            frame_descriptors=self._frame_descriptors(segments, record, times).to(device=device, dtype=dtype),
+            segment_ids=torch.from_numpy(geometry.segment_ids.copy()).to(device),
+        )
+
+    def _frame_descriptors(self, segments: list[TrackedSegment], centre: _FrameRecord, times: np.ndarray) -> torch.Tensor:
+        first = np.array([s.first_seen for s in segments])
+        last = np.array([s.last_seen for s in segments])
+        t0, t1 = last.min(), first.max()
+        if t0 > t1:
+            t0, t1 = first.min(), last.max()
+        with_desc = np.array([f.descriptor is not None for f in self.frames])
+        xyz = np.stack([f.camera_xyz for f in self.frames])
+        inside = with_desc & (times >= t0) & (times <= t1)
+        inside &= np.linalg.norm(xyz - centre.camera_xyz, axis=1) <= self.cfg.submap_radius_m
+        idx = np.flatnonzero(inside)
+        if len(idx):
+            idx = idx[thin_by_distance(xyz[idx], self.cfg.frame_descriptor_dist_m)]
+        else:  # fall back to the frame with a descriptor nearest in time to the centre
+            cand = np.flatnonzero(with_desc)
+            idx = cand[[int(np.argmin(np.abs(times[cand] - centre.time)))]]
+        return torch.stack([self.frames[i].descriptor for i in idx])
+
+
+def ground_map_config_dict(cfg: MeridianConfig) -> dict[str, Any]:
+    """The config blocks that shape ground submaps (stored in submap files)."""
+    p = cfg.perception
+    return {
+        "ground_map": cfg.ground_map.model_dump(mode="json", exclude={"batch_size"}),
+        "perception": {
+            "ground_segmenter": p.ground_segmenter.model_dump(mode="json"),
+            "descriptor": p.descriptor.model_dump(mode="json"),
+            "global_descriptor": p.global_descriptor.model_dump(mode="json"),
+        },
+        "primitives": cfg.primitives.model_dump(mode="json"),
+    }
+
+
+def map_ground(
+    reader: SequenceReader,
+    cfg: MeridianConfig,
+    runtime: Runtime,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[GroundSubmap]:
+    """All submaps of a sequence (frames segmented in batches of `cfg.ground_map.batch_size`)."""
+    return GroundMapper.from_config(cfg, reader.camera, runtime).map_sequence(reader, progress)

@@ -1,0 +1,102 @@
+#!/usr/bin/env python
+"""Ground mapping speed: frames per second, real-time factor and peak memory on a sequence.
+
+Runs `GroundMapper.map_sequence` over the sequence (default: the demo world, rendered into the
+cache if missing) and reports wall time split into stages (frame loading, segmentation +
+description, observations, tracking, submaps, global descriptors), frames per second, the
+real-time factor (sequence duration / wall time) and the peak resident memory of the process.
+Timing is per stage with time.perf_counter around the mapper's calls; numbers depend on the
+machine's load, so say how loaded it was when quoting them.
+
+Example: python scripts/bench_ground.py --threads 2 /tmp/g_demo -c configs/demo.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.io.sequence import SequenceReader
+from meridian_torch.mapping import ground_map, ground_observations
+from meridian_torch.mapping.ground_map import GroundMapper
+from meridian_torch.runtime import resolve_runtime
+
+
+def _timed(table: dict[str, float], name: str, fn):
+    def wrapper(*args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            table[name] += time.perf_counter() - t
+
+    return wrapper
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequence", type=Path, nargs="?", default=None, help="sequence folder (default: the demo world)")
+    ap.add_argument("-c", "--config", type=Path, default=CONFIG_DIR / "demo.yaml")
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    ap.add_argument("--frames", type=int, default=None, help="only the first N frames")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    cfg = load_config(args.config, args.overrides)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    seq = args.sequence
+    if seq is None:
+        from meridian_torch.sim.simulate import simulate_sequence
+
+        seq = Path.home() / ".cache" / "meridian-torch" / "bench" / cfg.sim.name
+        if not seq.exists():
+            simulate_sequence(cfg.sim, seq)
+    reader = SequenceReader(seq)
+    n = len(reader) if args.frames is None else min(args.frames, len(reader))
+
+    stages: dict[str, float] = defaultdict(float)
+    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
+    mapper.segmenter.segment = _timed(stages, "segmentation", mapper.segmenter.segment)
+    mapper.describer.describe = _timed(stages, "segment descriptors", mapper.describer.describe)
+    mapper.global_describer.describe = _timed(stages, "global descriptors", mapper.global_describer.describe)
+    ground_observations.frame_observations = _timed(stages, "observations (3D)", ground_observations.frame_observations)
+    mapper.tracker.update = _timed(stages, "tracking", mapper.tracker.update)
+    ground_map.submap_primitives = _timed(stages, "submaps", ground_map.submap_primitives)
+
+    started = time.perf_counter()
+    submaps = []
+    load = 0.0
+    for s in range(0, n, cfg.ground_map.batch_size):
+        t = time.perf_counter()
+        frames = [reader[i] for i in range(s, min(s + cfg.ground_map.batch_size, n))]
+        load += time.perf_counter() - t
+        submaps += mapper.add_frames(frames)
+    submaps += mapper.finish()
+    wall = time.perf_counter() - started
+    stages["frame loading"] = load
+    duration = float(reader.frame_times[n - 1] - reader.frame_times[0]) + 1.0 / cfg.sim.trajectory.frame_rate_hz
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    result = {
+        "sequence": str(seq), "frames": n, "threads": torch.get_num_threads(), "submaps": len(submaps),
+        "wall_s": wall, "fps": n / wall, "real_time_factor": duration / wall, "peak_rss_mb": peak_mb,
+        "stages_s": dict(stages), "load_average": list(__import__("os").getloadavg()),
+    }
+    print(f"{n} frames, {len(submaps)} submaps in {wall:.1f} s: {n / wall:.2f} frames/s, "
+          f"real-time factor {duration / wall:.2f} (sequence {duration:.0f} s), peak RSS {peak_mb:.0f} MB, "
+          f"torch threads {torch.get_num_threads()}, load average {result['load_average'][0]:.1f}")
+    for name, sec in sorted(stages.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:22s} {sec:7.2f} s  {1000 * sec / n:7.1f} ms/frame")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()

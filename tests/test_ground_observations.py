@@ -1,0 +1,254 @@
+"""Per-frame ground observations: grouped point-cloud ops against slow loops, back-projection of
+a known plane, the image-edge band and the occluded points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from meridian_torch.config import GroundObservationConfig
+from meridian_torch.geometry.se3 import pose_from_xyz_yaw
+from meridian_torch.io.camera import CameraModel
+from meridian_torch.mapping.ground_observations import (
+    edge_band,
+    erode_masks,
+    frame_observations,
+    group_largest_cluster,
+    group_outlier_mask,
+    group_voxel_downsample,
+    pixel_stride,
+    voxel_hash,
+    voxel_unhash,
+)
+
+# optical frame (x right, y down, z forward) -> base (x forward, y left, z up), level camera
+R_BASE_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _camera(width: int = 160, height: int = 90, height_m: float = 1.2) -> CameraModel:
+    T = np.eye(4)
+    T[:3, :3] = R_BASE_CAMERA
+    T[2, 3] = height_m
+    f = width / 2.0
+    return CameraModel(width, height, f, f, (width - 1) / 2, (height - 1) / 2, 1000.0, T)
+
+
+def _ground_depth(camera: CameraModel) -> np.ndarray:
+    """Depth of the plane z_base = 0 seen by the level camera (0 above the horizon)."""
+    v = np.arange(camera.height, dtype=np.float64)[:, None] * np.ones((1, camera.width))
+    down = (v - camera.cy) / camera.fy  # ray (x, y, 1) hits y * z = height
+    depth = np.where(down > 1e-6, camera.T_base_camera[2, 3] / np.maximum(down, 1e-9), 0.0)
+    return depth.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------ voxel keys
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-5000, 5000, allow_nan=False)] * 3), min_size=1, max_size=30),
+       st.sampled_from([0.1, 0.25, 1.0]))
+def test_voxel_hash_roundtrip(points, voxel):
+    p = np.array(points)
+    centres = voxel_unhash(voxel_hash(p, voxel), voxel)
+    assert np.all(np.abs(centres - p) <= voxel / 2 + 1e-6 * (1 + np.abs(p)))
+    # equal keys <=> same voxel index
+    idx = np.floor(p / voxel).astype(np.int64)
+    same_idx = (idx[:, None] == idx[None]).all(-1)
+    keys = voxel_hash(p, voxel)
+    assert np.array_equal(keys[:, None] == keys[None], same_idx)
+
+
+def test_voxel_hash_rejects_out_of_range():
+    with pytest.raises(ValueError):
+        voxel_hash(np.array([[2e6, 0.0, 0.0]]), 1.0)
+
+
+# --------------------------------------------------------------- grouped ops vs slow loops
+
+
+def _random_groups(rng, n_groups=5, n=400):
+    groups = np.sort(rng.integers(0, n_groups, n))
+    points = rng.normal(size=(n, 3)) * 2.0 + groups[:, None] * 0.7  # groups overlap in space
+    return points, groups
+
+
+def test_group_voxel_downsample_matches_loop():
+    rng = np.random.default_rng(0)
+    points, groups = _random_groups(rng)
+    out, out_groups = group_voxel_downsample(points, groups, 0.5)
+    for g in np.unique(groups):
+        p = points[groups == g]
+        keys = voxel_hash(p, 0.5)
+        expected = np.array(sorted((k, *p[keys == k].mean(axis=0)) for k in np.unique(keys)))[:, 1:]
+        got = out[out_groups == g]
+        got = got[np.argsort(voxel_hash(got, 0.5))]
+        np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+def test_group_outlier_mask_matches_loop():
+    rng = np.random.default_rng(1)
+    points, groups = _random_groups(rng)
+    keep = group_outlier_mask(points, groups, 10, 1.0)
+    for g in np.unique(groups):
+        p = points[groups == g]
+        d, _ = cKDTree(p).query(p, k=11)
+        mean_d = d[:, 1:].mean(axis=1)
+        expected = mean_d <= mean_d.mean() + mean_d.std()
+        assert np.array_equal(keep[groups == g], expected)
+    assert 0 < keep.sum() < len(keep)
+
+
+def _naive_dbscan_largest(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
+    n = len(points)
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    nb = d <= eps
+    core = nb.sum(1) >= min_points
+    label = -np.ones(n, dtype=int)
+    c = 0
+    for i in range(n):
+        if not core[i] or label[i] >= 0:
+            continue
+        stack = [i]
+        label[i] = c
+        while stack:
+            j = stack.pop()
+            for k in np.flatnonzero(nb[j]):
+                if label[k] < 0:
+                    label[k] = c
+                    if core[k]:
+                        stack.append(k)
+        c += 1
+    if c == 0:
+        return np.zeros(n, dtype=bool)
+    sizes = np.bincount(label[label >= 0])
+    return label == np.argmax(sizes)
+
+
+def test_group_largest_cluster_matches_naive_dbscan_on_grid_points():
+    # points at the centres of the eps/4 cells: the binning is then exact
+    rng = np.random.default_rng(2)
+    eps, cell = 1.0, 0.25
+    groups, clouds = [], []
+    for g in range(3):
+        blobs = [rng.integers(-4, 4, size=(rng.integers(15, 60), 3)) + off
+                 for off in ([0, 0, 0], [12 + g, 0, 0], [0, 15, 0])]
+        cells = np.unique(np.concatenate(blobs), axis=0)
+        cells = np.concatenate([cells, [[40, 40, 40]]])  # an isolated noise point
+        clouds.append((cells + 0.5) * cell)
+        groups.append(np.full(len(cells), g))
+    points, groups = np.concatenate(clouds), np.concatenate(groups)
+    keep, has = group_largest_cluster(points, groups, eps, 10)
+    assert has.all()
+    for g in range(3):
+        expected = _naive_dbscan_largest(points[groups == g], eps, 10)
+        assert np.array_equal(keep[groups == g], expected)
+
+
+def test_group_largest_cluster_reports_groups_without_cluster():
+    points = np.array([[0.0, 0, 0], [5.0, 0, 0], [0.0, 0, 0.05], [0.02, 0, 0]])
+    keep, has = group_largest_cluster(points, np.array([0, 0, 1, 1]), 0.5, 3)
+    assert not has.any() and not keep.any()
+
+
+# ---------------------------------------------------------------------------- image ops
+
+
+def test_edge_band_matches_loop():
+    rng = np.random.default_rng(3)
+    valid = np.ones((40, 70), dtype=bool)
+    valid[:12] = False  # sky
+    valid[20:25, 30:50] = rng.random((5, 20)) > 0.5
+    frac, max_frac = 0.05, 0.2
+    band = edge_band(valid, frac, max_frac)
+    e, cap = frac * 70, max_frac * 70
+    expected = np.zeros_like(valid)
+    for r in range(40):
+        cols = np.flatnonzero(valid[r])
+        if len(cols):
+            for c in range(70):
+                expected[r, c] |= c < min(cols[0] + e, cap) or c >= max(cols[-1] - e, 70 - cap)
+    for c in range(70):
+        rows = np.flatnonzero(valid[:, c])
+        if len(rows):
+            for r in range(40):
+                expected[r, c] |= r < min(rows[0] + e, cap) or r >= max(rows[-1] - e, 40 - cap)
+    assert np.array_equal(band, expected)
+    assert band[12:14].all() and not band[14:35, 20].any()  # hugs the valid region's top edge, capped
+
+
+def test_erode_masks_keeps_image_border_and_shrinks_inner_edges():
+    m = np.zeros((2, 30, 40), dtype=bool)
+    m[0, :, :20] = True  # touches the left, top and bottom image borders
+    m[1, 10:20, 25:35] = True
+    out = erode_masks(m, 3)
+    assert out[0, 0, 0] and out[0, 29, 0] and not out[0, 15, 19] and out[0, 15, 16]
+    assert out[1].sum() == 4 * 4 and out[1, 13:17, 28:32].all()
+
+
+def test_pixel_stride_scales_with_width():
+    cfg = GroundObservationConfig()
+    assert [pixel_stride(cfg, w) for w in (1280, 1241, 640, 480, 128)] == [4, 3, 2, 1, 1]
+    assert pixel_stride(GroundObservationConfig(pixel_stride=3), 480) == 3
+
+
+# ---------------------------------------------------------------------- frame observations
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-np.pi, np.pi), st.floats(0.8, 2.0))
+def test_backprojected_ground_plane_lies_on_the_plane(x, y, yaw, height):
+    camera = _camera(height_m=height)
+    depth = _ground_depth(camera)
+    T_odom_base = pose_from_xyz_yaw(np.array([x, y, 0.0]), np.array(yaw))
+    T_odom_camera = T_odom_base @ camera.T_base_camera
+    masks = torch.zeros(1, camera.height, camera.width, dtype=torch.bool)
+    masks[0, camera.height // 2 + 1 :] = True
+    cfg = GroundObservationConfig(pixel_stride=1, dbscan_eps_m=0.6)
+    obs = frame_observations(masks, torch.ones(1, 4) / 2, depth, T_odom_camera, 0.0, camera, cfg)
+    assert len(obs) == 1
+    pts = np.concatenate([obs.points, obs.occluded])
+    assert np.abs(pts[:, 2]).max() < 1e-4  # on the odom plane z = 0
+    ahead = (pts[:, :2] - [x, y]) @ [np.cos(yaw), np.sin(yaw)]
+    assert ahead.min() > 0 and ahead.max() <= cfg.max_depth_m + 0.1
+    # the far band (depth > 9 m) is occluded, not real
+    real_ahead = (obs.points[:, :2] - [x, y]) @ [np.cos(yaw), np.sin(yaw)]
+    assert real_ahead.max() <= cfg.occlusion_max_depth_m + 0.15
+
+
+def test_backprojection_of_fronto_parallel_plane():
+    camera = _camera(120, 80)
+    depth = np.full((80, 120), 4.0, dtype=np.float32)
+    masks = np.zeros((2, 80, 120), dtype=bool)
+    masks[0, 20:60, 30:90] = True  # inside the view
+    masks[1, :, :10] = True  # along the left image edge
+    cfg = GroundObservationConfig(pixel_stride=2)
+    obs = frame_observations(torch.from_numpy(masks), torch.eye(2), depth, np.eye(4), 1.5, camera, cfg)
+    assert obs.time == 1.5 and list(obs.mask_index) == [0, 1]
+    inner = obs.points[obs.point_obs == 0]
+    assert np.allclose(inner[:, 2], 4.0, atol=1e-9)
+    # x = (u - cx) z / fx: the eroded mask spans columns 33..86 (7x7 ellipse)
+    u = inner[:, 0] * camera.fx / 4.0 + camera.cx
+    assert u.min() > 32 and u.max() < 87 and not len(obs.occluded[obs.occluded_obs == 0])
+    # the edge mask: its image-edge band pixels are occluded, real points stay clear of them
+    occ = obs.occluded[obs.occluded_obs == 1]
+    u_occ = occ[:, 0] * camera.fx / 4.0 + camera.cx
+    v_occ = occ[:, 1] * camera.fy / 4.0 + camera.cy
+    e = 0.02 * 120  # band width in pixels (+ half a 0.1 m voxel = 1.5 px at 4 m)
+    assert len(occ) and np.all((u_occ < e + 1.6) | (v_occ < e + 1.6) | (v_occ > 79 - e - 1.6))
+    real = obs.points[obs.point_obs == 1]
+    assert cKDTree(occ).query(real)[0].min() > cfg.occluded_clearance_m
+
+
+def test_mask_without_depth_gives_no_observation():
+    camera = _camera(60, 40)
+    depth = np.zeros((40, 60), dtype=np.float32)
+    depth[20:] = 3.0
+    masks = np.zeros((2, 40, 60), dtype=bool)
+    masks[0, :15] = True  # sky
+    masks[1, 22:] = True
+    obs = frame_observations(masks, torch.eye(2), depth, np.eye(4), 0.0, camera, GroundObservationConfig())
+    assert list(obs.mask_index) == [1] and len(obs) == 1
