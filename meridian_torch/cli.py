@@ -6,17 +6,19 @@ Heavy modules (simulator, renderer, matplotlib) are imported inside the commands
 from __future__ import annotations
 
 import functools
-import hashlib
-import json
 import os
 import time
+
+# Idle OpenMP threads sleep instead of spinning: on a shared 2-core machine spinning threads made
+# small torch ops 25-50x slower (measured); set before torch is first imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from pathlib import Path
 from typing import Annotated, Any, Callable
 
 import typer
 
 from meridian_torch import __version__
-from meridian_torch.config import CONFIG_DIR, MeridianConfig, dump_config, load_config
+from meridian_torch.config import CONFIG_DIR, MeridianConfig, config_key, dump_config, load_config
 from meridian_torch.errors import MeridianError
 
 __all__ = ["app", "main"]
@@ -30,6 +32,8 @@ app = typer.Typer(
 )
 config_app = typer.Typer(help="Inspect configuration files.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
+models_app = typer.Typer(help="List and verify local model files (models/manifest.yaml).", no_args_is_help=True)
+app.add_typer(models_app, name="models")
 
 ConfigOption = Annotated[
     Path | None,
@@ -145,28 +149,16 @@ def simulate(
 
 
 def _build_map(cfg: MeridianConfig, ortho_path: Path, out: Path) -> Any:
-    import shutil
-
-    from meridian_torch.io.map_file import save_aerial_map
-    from meridian_torch.io.ortho import find_orthophoto, read_orthophoto
-    from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
+    from meridian_torch.mapping.aerial_map import build_map_file
     from meridian_torch.runtime import resolve_runtime
 
     runtime = resolve_runtime(cfg.runtime)
-    ortho = read_orthophoto(ortho_path)
-    mapper = AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives, device=runtime.device)
-    work_dir = out.with_name(out.name + ".parts")
     update, close = _progress_bar("building aerial map", "patch")
     try:
-        aerial_map = build_aerial_map(
-            ortho, mapper, work_dir=work_dir, progress=update,
-            source={"orthophoto": str(find_orthophoto(ortho_path).resolve())},
-        )
+        return build_map_file(ortho_path, out, cfg.aerial_map, cfg.perception, cfg.primitives,
+                              device=runtime.device, progress=update)
     finally:
         close()
-    save_aerial_map(aerial_map, out)
-    shutil.rmtree(work_dir, ignore_errors=True)
-    return aerial_map
 
 
 @app.command("build-map")
@@ -212,12 +204,183 @@ def show_map(
     typer.echo(f"wrote {plot_aerial_map(aerial_map, image, out)}")
 
 
+@app.command("map-ground")
+@_error_boundary
+def map_ground_command(
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (RGB-D frames + odometry).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (submaps.mts, plots/, run info).")],
+    config: ConfigOption = None,
+    set_: SetOption = None,
+    plots: Annotated[bool, typer.Option(help="Write a PNG per submap to OUT/plots/.")] = True,
+) -> None:
+    """Map the ground side: frames -> tracked 3D segments -> 2D point/line submaps (odom frame).
+
+    Writes OUT/submaps.mts (format: meridian_torch/io/submap_file.py) and, with --plots, one PNG
+    per submap; when the sequence has groundtruth.tum, the PNG also shows the primitives over the
+    orthophoto through the ground-truth pose.
+    """
+    import numpy as np
+
+    from meridian_torch.geometry.se3 import se3_inverse
+    from meridian_torch.io.run_info import write_run_info
+    from meridian_torch.io.sequence import SequenceReader
+    from meridian_torch.io.submap_file import save_ground_submaps
+    from meridian_torch.mapping.ground_map import GroundMapper, ground_map_config_dict
+    from meridian_torch.runtime import resolve_runtime
+
+    cfg = _load(config, set_)
+    reader = SequenceReader(sequence)
+    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
+    started = time.perf_counter()
+    update, close = _progress_bar("mapping ground", "frame")
+    try:
+        submaps = mapper.map_sequence(reader, update)
+    finally:
+        close()
+    seconds = time.perf_counter() - started
+    out.mkdir(parents=True, exist_ok=True)
+    save_ground_submaps(submaps, out / "submaps.mts", config=ground_map_config_dict(cfg),
+                        source={"sequence": str(sequence.resolve())},
+                        descriptor_dim=mapper.describer.dim, global_descriptor_dim=mapper.global_describer.dim)
+    write_run_info(out, cfg, "map-ground")
+    if plots:
+        from meridian_torch.evaluation.plots import plot_ground_submap
+
+        ortho = reader.ortho() if reader.groundtruth is not None else None
+        for submap, geometry in zip(submaps, mapper.geometries, strict=True):
+            T_world_odom = None
+            if reader.groundtruth is not None and reader.groundtruth.covers(np.array([submap.time])):
+                T_world_odom = reader.groundtruth.interpolate(np.array([submap.time]))[0] @ se3_inverse(
+                    submap.T_odom_base)
+            plot_ground_submap(submap, out / "plots" / f"submap_{submap.index:03d}.png", geometry=geometry,
+                               ortho=ortho, T_world_odom=T_world_odom)
+    duration = float(reader.frame_times[-1] - reader.frame_times[0])
+    typer.echo(
+        f"wrote {out / 'submaps.mts'}: {len(submaps)} submaps, "
+        f"{sum(s.primitives.points_xy.shape[0] for s in submaps)} points, "
+        f"{sum(s.primitives.line_endpoints.shape[0] for s in submaps)} lines from {len(reader)} frames "
+        f"({seconds:.1f} s, {len(reader) / max(seconds, 1e-9):.1f} frames/s, "
+        f"{duration / max(seconds, 1e-9):.2f}x real time)"
+    )
+
+
+def _load_or_build_map(cfg: MeridianConfig, map_path: Path, ortho_path: Path) -> Any:
+    """The aerial map at `map_path` (built from `ortho_path` first when missing); its config must match."""
+    from meridian_torch.io.map_file import load_aerial_map
+    from meridian_torch.mapping.aerial_map import map_config_dict
+
+    map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
+    if map_path.exists():
+        typer.echo(f"using the aerial map {map_path}")
+        return load_aerial_map(map_path, expected_config=map_config)
+    typer.echo(f"building the aerial map {map_path} from {ortho_path}")
+    return _build_map(cfg, ortho_path, map_path)
+
+
+def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path) -> dict[str, Any] | None:
+    """Run the online pipeline with live progress, write the outputs, evaluate when ground truth exists."""
+    from tqdm import tqdm
+
+    from meridian_torch.evaluation.report import write_report
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.results import write_outputs
+    from meridian_torch.io.sequence import SequenceReader
+    from meridian_torch.pipeline import localize_sequence
+    from meridian_torch.runtime import resolve_runtime
+
+    runtime = resolve_runtime(cfg.runtime)
+    reader = SequenceReader(sequence)
+    bar = tqdm(desc="localizing", unit="frame", total=len(reader), dynamic_ncols=True)
+
+    def on_frames(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    def on_submap(submap: Any, event: Any) -> None:
+        bar.write(
+            f"submap {submap.index:3d} t={submap.time:7.1f} s {submap.path_length_m:6.0f} m: "
+            f"{event.n_patches} patches, {event.n_hypotheses} hypotheses | pool {event.n_candidates}, "
+            f"{event.n_inliers} inliers [{event.state}]"
+        )
+        if event.fix_committed:
+            bar.write(f"==> global fix committed at submap {submap.index} ({event.n_inliers} inliers)")
+
+    try:
+        run = localize_sequence(
+            reader, aerial_map, cfg, runtime, on_frames=on_frames, on_submap=on_submap,
+            on_stage=lambda name: bar.write(f"{name} ..."),
+        )
+    finally:
+        bar.close()
+    ortho = reader.ortho()
+    write_outputs(out, run.result, crs=ortho.crs)
+    metrics = None
+    if reader.groundtruth is not None:
+        metrics = evaluate_run(out, reader.groundtruth, cfg.evaluation)
+    report = write_report(out, run, ortho=ortho, groundtruth=reader.groundtruth, metrics=metrics)
+    stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.seconds.items())
+    typer.echo(f"{len(run.submaps)} submaps; {stages}; real-time factor {run.real_time_factor:.2f}; "
+               f"peak memory {run.peak_memory_mib:.0f} MiB")
+    typer.echo(f"localized: {'yes' if run.result.localized else 'no'}; report: {report}")
+    return metrics
+
+
+def _print_metrics(metrics: dict[str, Any]) -> None:
+    final, inc = metrics.get("final") or {}, metrics.get("incremental") or {}
+    def fmt(v: Any, unit: str) -> str:
+        return "n/a" if v is None else f"{v:.2f} {unit}"
+    typer.echo(
+        f"ATE final {fmt(final.get('ate_rmse_m'), 'm')}, incremental {fmt(inc.get('ate_rmse_m'), 'm')}; "
+        f"heading RMSE final {fmt(final.get('heading_rmse_deg'), 'deg')}"
+    )
+
+
+@app.command()
+@_error_boundary
+def localize(
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (see FORMAT.md in the README).")],
+    map_file: Annotated[Path, typer.Option("--map", "-m", help="Aerial map (.mtm); built from the sequence's "
+                                                                "orthophoto first if it does not exist.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (trajectories, metrics, plots, report).")],
+    config: ConfigOption = None,
+    set_: SetOption = None,
+) -> None:
+    """Localize a sequence in an aerial map: online (incremental) and offline (final) trajectories.
+
+    Writes trajectory.tum, trajectory_incremental.tum, covariances, loop-closure inliers, a report
+    with plots, geo outputs when the orthophoto has a CRS, and metrics.json when groundtruth.tum
+    exists. Progress shows every submap, its hypotheses, the inlier count and the global fix.
+    """
+    from meridian_torch.io.run_info import write_run_info
+
+    cfg = _load(config, set_)
+    write_run_info(out, cfg, "localize")
+    aerial_map = _load_or_build_map(cfg, map_file, sequence)
+    metrics = _localize(cfg, sequence, aerial_map, out)
+    if metrics is not None:
+        _print_metrics(metrics)
+    typer.echo(f"outputs in {out}")
+
+
+@app.command()
+@_error_boundary
+def evaluate(
+    run_dir: Annotated[Path, typer.Argument(help="Output folder of `meridian-torch localize`.")],
+    groundtruth: Annotated[Path, typer.Option("--groundtruth", "-g", help="Ground truth T_world_base (TUM).")],
+    config: ConfigOption = None,
+    set_: SetOption = None,
+) -> None:
+    """(Re-)compute metrics.json of a localization run against a ground-truth TUM file."""
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.poses import read_tum
+
+    cfg = _load(config, set_)
+    metrics = evaluate_run(run_dir, read_tum(groundtruth), cfg.evaluation)
+    _print_metrics(metrics)
+    typer.echo(f"wrote {run_dir / 'metrics.json'}")
+
+
 def _default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "meridian-torch"
-
-
-def _cache_key(*parts: Any) -> str:
-    return hashlib.sha256(json.dumps([__version__, *parts], sort_keys=True).encode()).hexdigest()[:12]
 
 
 @app.command()
@@ -230,12 +393,13 @@ def demo(
     config: ConfigOption = None,
     set_: SetOption = None,
 ) -> None:
-    """Run every available stage on the built-in default world (rendered once, then cached).
+    """Run the whole system on the built-in default world and print its ATE.
 
-    Stages today: simulate the world (cached), build its aerial map (cached), plot both.
+    Renders the world once into the cache, builds (or reuses) its aerial map, then maps the ground
+    frames, localizes every submap online, optimizes the final trajectory and evaluates it against
+    the simulator's ground truth. Outputs (trajectories, metrics, plots, report) go to OUT.
     """
     from meridian_torch.evaluation.plots import plot_aerial_map
-    from meridian_torch.io.map_file import load_aerial_map
     from meridian_torch.io.ortho import read_orthophoto
     from meridian_torch.io.run_info import write_run_info
     from meridian_torch.mapping.aerial_map import map_config_dict
@@ -245,28 +409,170 @@ def demo(
     started = time.perf_counter()
     write_run_info(out, cfg, "demo")
     # Cache keys are the configs that shape each product: any change renders or builds anew.
-    sequence = (cache_dir or _default_cache_dir()) / "worlds" / f"{cfg.sim.name}-{_cache_key(cfg.sim.model_dump(mode='json'))}"
+    sequence = (cache_dir or _default_cache_dir()) / "worlds" / f"{cfg.sim.name}-{config_key(cfg.sim.model_dump(mode='json'))}"
     if sequence.exists():
-        typer.echo(f"[1/2] using the cached world {sequence}")
+        typer.echo(f"[1/3] using the cached world {sequence}")
     else:
-        typer.echo(f"[1/2] rendering the demo world into {sequence} (once)")
+        typer.echo(f"[1/3] rendering the demo world into {sequence} (once)")
         summary = _simulate(cfg, sequence, overwrite=False)
         typer.echo(f"      {summary.frames} frames, {summary.path_length_m:.0f} m of driving")
     preview = write_preview(sequence, out / "preview.png")
 
     map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
-    map_path = sequence / f"aerial-{_cache_key(map_config)}.mtm"
-    if map_path.exists():
-        typer.echo(f"[2/2] using the cached aerial map {map_path}")
-        aerial_map = load_aerial_map(map_path, expected_config=map_config)
-    else:
-        typer.echo(f"[2/2] building the aerial map {map_path}")
-        aerial_map = _build_map(cfg, sequence, map_path)
+    typer.echo("[2/3] aerial map")
+    aerial_map = _load_or_build_map(cfg, sequence / f"aerial-{config_key(map_config)}.mtm", sequence)
     prims = aerial_map.primitives
     typer.echo(f"      {len(aerial_map)} patches, {int(prims.point_valid.sum())} points, {int(prims.line_valid.sum())} lines")
     map_png = plot_aerial_map(aerial_map, read_orthophoto(sequence), out / "aerial_map.png")
+
+    typer.echo("[3/3] ground mapping and localization")
+    metrics = _localize(cfg, sequence, aerial_map, out)
     typer.echo(f"plots: {preview}, {map_png}")
+    if metrics is not None:
+        _print_metrics(metrics)
     typer.echo(f"demo finished in {time.perf_counter() - started:.1f} s; outputs in {out}")
+
+
+@app.command("fit-vocabulary")
+@_error_boundary
+def fit_vocabulary(
+    images: Annotated[list[Path], typer.Argument(help="RGB images (PNG/JPEG) representative of the domain.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Vocabulary file to write (.pt).")],
+    seed: Annotated[int, typer.Option(help="Seed of the token subsampling and k-means initialization.")] = 0,
+    tokens_per_image: Annotated[
+        int | None, typer.Option(help="Random tokens kept per image (default: all), bounds memory.", min=1)
+    ] = None,
+    config: ConfigOption = None,
+    set_: SetOption = None,
+) -> None:
+    """Fit the AnyLoc VLAD vocabulary (cosine k-means) of perception.global_descriptor.anyloc.
+
+    Tokens are the configured backbone/layer/facet of IMAGES; the number of clusters is
+    perception.global_descriptor.anyloc.num_clusters. Point vocabulary_path at OUT to use it.
+    """
+    import numpy as np
+    import torch
+    from PIL import Image, UnidentifiedImageError
+
+    from meridian_torch.errors import ConfigError
+    from meridian_torch.perception.factory import build_anyloc_facet
+    from meridian_torch.perception.neural import anyloc
+    from meridian_torch.runtime import resolve_runtime
+
+    cfg = _load(config, set_)
+    c = cfg.perception.global_descriptor.anyloc
+    runtime = resolve_runtime(cfg.runtime)
+    facet = build_anyloc_facet(c).to(device=runtime.device, dtype=runtime.dtype)
+
+    def read_rgb(path: Path) -> torch.Tensor:
+        try:
+            with Image.open(path) as img:
+                rgb = np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+        except (OSError, UnidentifiedImageError) as e:
+            raise ConfigError(f"{path}: not a readable image ({e})") from None
+        return torch.from_numpy(rgb).permute(2, 0, 1)[None]
+
+    started = time.perf_counter()
+    update, close = _progress_bar("extracting tokens", "image")
+    try:
+        centers = anyloc.fit_vocabulary(
+            facet, (read_rgb(p) for p in images), num_clusters=c.num_clusters,
+            resize_short_side_px=c.resize_short_side_px, seed=seed, tokens_per_image=tokens_per_image,
+            progress=update, total=len(images),
+        )
+    except ValueError as e:
+        raise ConfigError(f"fit-vocabulary: {e}") from None
+    finally:
+        close()
+    vocabulary = anyloc.Vocabulary(centers, architecture=c.architecture, layer=c.layer, facet=c.facet)
+    anyloc.save_vocabulary(out, vocabulary)
+    typer.echo(
+        f"wrote {out}: {centers.shape[0]} centres of dimension {centers.shape[1]} from {len(images)} images "
+        f"({time.perf_counter() - started:.1f} s)"
+    )
+
+
+@app.command("export")
+@_error_boundary
+def export_onnx(
+    model: Annotated[str, typer.Argument(help="dinov2-dense, anyloc-facet, vlad-head, sam-encoder or sam-decoder.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="ONNX file to write.", dir_okay=False)],
+    config: ConfigOption = None,
+    set_: SetOption = None,
+    exporter: Annotated[str | None, typer.Option(help="legacy or dynamo (default: the model's, legacy).")] = None,
+) -> None:
+    """Export a model as configured (weights, architecture, layer, vocabulary) to ONNX.
+
+    The graph is written only after onnxruntime reproduces eager torch on two input sizes; the
+    max abs differences are printed. dinov2-dense comes from perception.descriptor.dinov2,
+    anyloc-facet and vlad-head from perception.global_descriptor.anyloc, sam-* from
+    perception.aerial_segmenter.sam. Point perception.onnx.* at the files to run them onboard.
+    """
+    from meridian_torch.export.models import EXPORTABLE_MODELS, export_model
+
+    if model not in EXPORTABLE_MODELS:
+        raise typer.BadParameter(f"{model!r}; exportable: {', '.join(EXPORTABLE_MODELS)}", param_hint="MODEL")
+    if exporter not in (None, "legacy", "dynamo"):
+        raise typer.BadParameter(f"{exporter!r}; use legacy or dynamo", param_hint="--exporter")
+    cfg = _load(config, set_)
+    started = time.perf_counter()
+    report = export_model(model, cfg.perception, out, exporter=exporter)  # type: ignore[arg-type]
+    shapes = ", ".join(f"{name}{list(shape)}" for name, shape in report.inputs.items())
+    checked = "; ".join(f"{list(c.input_shapes)}: {max(c.max_abs_diff.values()):.2g}" for c in report.checks)
+    typer.echo(f"wrote {out} ({report.size_bytes / 2**20:.1f} MiB, {report.exporter} exporter, "
+               f"{time.perf_counter() - started:.1f} s); inputs {shapes}")
+    typer.echo(f"max abs difference to torch (tolerance {report.atol:g} + {report.rtol:g}*|x|): {checked}")
+
+
+ManifestOption = Annotated[
+    Path | None, typer.Option("--manifest", help="Model manifest (default: models/manifest.yaml).", dir_okay=False)
+]
+
+
+@models_app.command("list")
+@_error_boundary
+def models_list(manifest: ManifestOption = None) -> None:
+    """List the known model files, whether each is present, and where to get it."""
+    from meridian_torch.export.manifest import load_manifest
+
+    m = load_manifest(manifest)
+    for e in m.entries:
+        present = "present" if (m.folder / e.file).is_file() else "missing"
+        recorded = "sha256 recorded" if e.sha256 else "no hash recorded"
+        typer.echo(f"{e.name:24s} {present:8s} {recorded:17s} {e.file}\n{'':24s} {e.architecture}; {e.license}\n"
+                   f"{'':24s} {e.source}")
+    typer.echo(f"{len(m.entries)} models in {m.path}; files go in {m.folder}")
+
+
+@models_app.command("verify")
+@_error_boundary
+def models_verify(
+    names: Annotated[list[str] | None, typer.Argument(help="Models to check (default: every file present).")] = None,
+    manifest: ManifestOption = None,
+    record: Annotated[bool, typer.Option(help="Write the sha256 of present files that have none into the "
+                                              "manifest (recorded hashes are never overwritten).")] = False,
+) -> None:
+    """Hash model files and compare with the manifest: ok, mismatch, missing or no hash recorded.
+
+    Exits 1 on a mismatch, or when a model named on the command line is missing.
+    """
+    from meridian_torch.export.manifest import load_manifest, verify_models
+
+    m = load_manifest(manifest)
+    results = verify_models(m, names or (), record=record)
+    for r in results:
+        if r.status == "missing" and not names:
+            continue  # without names, only the files the user has are checked
+        detail = {"mismatch": f"file {r.sha256} != manifest {r.entry.sha256}", "missing": f"no file {r.path}",
+                  "no hash recorded": "run `models verify --record` to record it"}.get(r.status, r.sha256 or "")
+        typer.echo(f"{r.entry.name:24s} {r.status:17s} {detail}")
+    checked = [r for r in results if names or r.status != "missing"]
+    if not checked:
+        typer.echo(f"no model files in {m.folder} (see {m.folder / 'README.md'})")
+    failed = [r.entry.name for r in checked if r.failed]
+    if failed:
+        typer.echo(f"error: {', '.join(failed)} failed verification", err=True)
+        raise typer.Exit(1)
 
 
 def main() -> None:

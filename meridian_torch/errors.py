@@ -3,7 +3,7 @@ into a one-line message and exit code 1."""
 
 from __future__ import annotations
 
-__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError", "ModelWeightsError"]
+__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError", "ModelWeightsError", "ExportError"]
 
 
 class MeridianError(Exception):
@@ -28,3 +28,7 @@ class SimulationError(MeridianError):
 
 class ModelWeightsError(MeridianError):
     """A model weights file is missing, unreadable or does not fit the architecture; the message names the path."""
+
+
+class ExportError(MeridianError):
+    """An ONNX export failed or its onnxruntime output differs from eager torch; nothing was written."""

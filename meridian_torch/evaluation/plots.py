@@ -12,7 +12,7 @@ from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.perception.kmeans import cosine_kmeans
 
-__all__ = ["plot_aerial_map"]
+__all__ = ["plot_aerial_map", "plot_ground_submap"]
 
 
 def _pyplot():
@@ -56,6 +56,78 @@ def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Pa
     ax.set_title(f"aerial map: {len(aerial_map)} patches, {len(points)} points, {len(lines)} lines "
                  f"(colour = descriptor cluster)")
     out_png = Path(out_png)
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return out_png
+
+
+def _se2_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(2x2 rotation, translation) of the x-y part of a 4x4 pose (yaw only)."""
+    yaw = np.arctan2(T[1, 0], T[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s], [s, c]]), np.asarray(T[:2, 3], dtype=np.float64)
+
+
+def plot_ground_submap(
+    submap,
+    out_png: Path,
+    *,
+    geometry=None,
+    ortho: Orthophoto | None = None,
+    T_world_odom: np.ndarray | None = None,
+) -> Path:
+    """One ground submap: its flattened segments, occluded points and primitives in the odom x-y
+    frame; with `ortho` and `T_world_odom` (4x4, e.g. from the ground truth) a second panel shows
+    the primitives over the orthophoto. `submap` is a `GroundSubmap`, `geometry` its
+    `SubmapGeometry` (optional)."""
+    plt = _pyplot()
+    from matplotlib.collections import LineCollection
+
+    prims = submap.primitives
+    points = prims.points_xy.detach().cpu().double().numpy().reshape(-1, 2)
+    lines = prims.line_endpoints.detach().cpu().double().numpy().reshape(-1, 2, 2)
+    centre = np.asarray(submap.T_odom_base, dtype=np.float64)[:2, 3]
+    overlay = ortho is not None and T_world_odom is not None
+    fig, axes = plt.subplots(1, 2 if overlay else 1, figsize=(16 if overlay else 8.5, 8), dpi=100, squeeze=False)
+    ax = axes[0, 0]
+    if geometry is not None and len(geometry.points_xy):
+        cmap = plt.get_cmap("tab20")
+        ax.scatter(*geometry.points_xy.T, s=0.3, c=cmap(geometry.point_segment % 20), alpha=0.35, lw=0)
+        if len(geometry.occluded_xy):
+            ax.scatter(*geometry.occluded_xy.T, s=0.6, c="red", alpha=0.4, lw=0, label="occluded")
+    ax.add_collection(LineCollection(lines, colors="navy", linewidths=1.6, label="lines"))
+    ax.scatter(points[:, 0], points[:, 1], s=30, c="orange", edgecolors="black", linewidths=0.5, zorder=3,
+               label="points")
+    ax.plot(*centre, marker="*", ms=14, c="magenta", mec="black", zorder=4, label="centre")
+    ax.set_aspect("equal")
+    ax.set_xlabel("odom x (m)")
+    ax.set_ylabel("odom y (m)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(f"submap {submap.index}: t = {submap.time:.1f} s, path {submap.path_length_m:.0f} m, "
+                 f"{len(points)} points, {len(lines)} lines")
+    if overlay:
+        R, t = _se2_of(T_world_odom)
+        ax2 = axes[0, 1]
+        w_pts = points @ R.T + t
+        w_lines = lines @ R.T + t
+        w_centre = centre @ R.T + t
+        half = 45.0
+        x0, y_top = ortho.origin_xy
+        h_px, w_px = ortho.image.shape[:2]
+        mpp = ortho.meters_per_pixel
+        ax2.imshow(ortho.image, extent=(x0, x0 + w_px * mpp, y_top - h_px * mpp, y_top), alpha=0.8)
+        ax2.add_collection(LineCollection(w_lines, colors="cyan", linewidths=1.8))
+        ax2.scatter(w_pts[:, 0], w_pts[:, 1], s=30, c="orange", edgecolors="black", linewidths=0.5, zorder=3)
+        ax2.plot(*w_centre, marker="*", ms=14, c="magenta", mec="black", zorder=4)
+        ax2.set_xlim(w_centre[0] - half, w_centre[0] + half)
+        ax2.set_ylim(w_centre[1] - half, w_centre[1] + half)
+        ax2.set_aspect("equal")
+        ax2.set_xlabel("world x east (m)")
+        ax2.set_ylabel("world y north (m)")
+        ax2.set_title("over the orthophoto through the ground-truth pose")
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_png) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
     plt.close(fig)

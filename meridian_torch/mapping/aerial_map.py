@@ -22,7 +22,7 @@ from meridian_torch import __version__
 from meridian_torch.config import AerialMapConfig, PerceptionConfig
 from meridian_torch.io.atomic import atomic_path, write_text_atomic
 from meridian_torch.io.map_file import AerialMap, save_aerial_map
-from meridian_torch.io.ortho import Orthophoto
+from meridian_torch.io.ortho import Orthophoto, find_orthophoto, read_orthophoto
 from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
 from meridian_torch.mapping.tiling import PatchGrid, crop_offsets, tile_image
@@ -30,7 +30,7 @@ from meridian_torch.perception.factory import build_global_describer, build_segm
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.types import PrimitiveSet, stack_primitive_sets
 
-__all__ = ["AerialMapper", "build_aerial_map", "map_config_dict"]
+__all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict"]
 
 
 def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig) -> dict[str, Any]:
@@ -200,3 +200,26 @@ def build_aerial_map(
         },
         source=source or {},
     )
+
+
+def build_map_file(
+    ortho_path: Path,
+    out: Path,
+    aerial: AerialMapConfig,
+    perception: PerceptionConfig,
+    primitives: PrimitiveConfig,
+    *,
+    device: torch.device | str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
+) -> AerialMap:
+    """Orthophoto file or folder -> aerial map saved at `out`, resumable through `out`.parts/."""
+    ortho = read_orthophoto(ortho_path)
+    mapper = AerialMapper.from_config(aerial, perception, primitives, device=device)
+    work_dir = out.with_name(out.name + ".parts")
+    aerial_map = build_aerial_map(
+        ortho, mapper, work_dir=work_dir, progress=progress,
+        source={"orthophoto": str(find_orthophoto(ortho_path).resolve())},
+    )
+    save_aerial_map(aerial_map, out)
+    shutil.rmtree(work_dir, ignore_errors=True)
+    return aerial_map

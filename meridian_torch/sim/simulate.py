@@ -11,6 +11,7 @@ import torch
 
 from meridian_torch import __version__
 from meridian_torch.geometry.trajectory import Trajectory
+from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.sequence import SequenceWriter
 from meridian_torch.sim.config import SimConfig
 from meridian_torch.sim.from_raster import world_from_class_raster
@@ -22,7 +23,7 @@ from meridian_torch.sim.procedural import generate_world
 from meridian_torch.sim.trajectory import frame_times, load_trajectory, plan_drive
 from meridian_torch.sim.world import World
 
-__all__ = ["SimulationSummary", "build_world", "simulate_sequence", "GROUND_TRUTH_DIR"]
+__all__ = ["SimulationSummary", "build_world", "render_world_orthophoto", "simulate_sequence", "GROUND_TRUTH_DIR"]
 
 GROUND_TRUTH_DIR = "sim"  # inside the sequence folder: the world's objects, borders and rasters
 
@@ -48,6 +49,11 @@ def build_world(cfg: SimConfig) -> World:
     if cfg.world.kind == "class_raster":
         return world_from_class_raster(cfg.world, seed)
     return generate_world(cfg.world, seed)
+
+
+def render_world_orthophoto(cfg: SimConfig) -> Orthophoto:
+    """Only the orthophoto of `cfg`'s world (as `simulate_sequence` renders it), e.g. an outdated variant."""
+    return render_orthophoto(build_world(cfg), cfg.ortho, _stage_seeds(cfg.seed)["ortho"])
 
 
 def simulate_sequence(
