@@ -84,3 +84,21 @@ def test_other_version_and_config_are_refused(tmp_path: Path, monkeypatch: pytes
     monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 2)
     with pytest.raises(MapFileError, match="format version 1"):
         load_aerial_map(path)
+
+
+def test_map_config_ignores_options_of_unused_back_ends() -> None:
+    from meridian_torch.config import MeridianConfig
+    from meridian_torch.mapping.aerial_map import map_config_dict
+
+    cfg = MeridianConfig()
+    base = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
+    seg = cfg.perception.aerial_segmenter
+    changed_unused = cfg.perception.model_copy(
+        update={"aerial_segmenter": seg.model_copy(update={"sam": seg.sam.model_copy(update={"points_per_side": 8})})}
+    )
+    assert map_config_dict(cfg.aerial_map, changed_unused, cfg.primitives) == base
+    classical = seg.classical.model_copy(update={"merge_threshold": seg.classical.merge_threshold + 1})
+    changed_used = cfg.perception.model_copy(update={"aerial_segmenter": seg.model_copy(update={"classical": classical})})
+    assert map_config_dict(cfg.aerial_map, changed_used, cfg.primitives) != base
+    switched = cfg.perception.model_copy(update={"aerial_segmenter": seg.model_copy(update={"backend": "sam"})})
+    assert map_config_dict(cfg.aerial_map, switched, cfg.primitives) != base

@@ -26,6 +26,7 @@ from meridian_torch.io.ortho import Orthophoto, find_orthophoto, read_orthophoto
 from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
 from meridian_torch.mapping.tiling import PatchGrid, crop_offsets, tile_image
+from meridian_torch.perception.config import active_backend_dict
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.types import PrimitiveSet, stack_primitive_sets
@@ -38,9 +39,9 @@ def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primi
     return {
         "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size"}),
         "perception": {
-            "aerial_segmenter": perception.aerial_segmenter.model_dump(mode="json"),
-            "descriptor": perception.descriptor.model_dump(mode="json"),
-            "global_descriptor": perception.global_descriptor.model_dump(mode="json"),
+            "aerial_segmenter": active_backend_dict(perception.aerial_segmenter),
+            "descriptor": active_backend_dict(perception.descriptor),
+            "global_descriptor": active_backend_dict(perception.global_descriptor),
         },
         "primitives": primitives.model_dump(mode="json"),
     }

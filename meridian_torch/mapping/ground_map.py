@@ -34,6 +34,7 @@ from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.ground_observations import observe_frames
 from meridian_torch.mapping.ground_submaps import SubmapGeometry, SubmapTrigger, submap_primitives, thin_by_distance
 from meridian_torch.mapping.ground_tracking import SegmentTracker, TrackedSegment
+from meridian_torch.perception.config import active_backend_dict
 from meridian_torch.perception.factory import build_ground_perception
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.runtime import Runtime
@@ -228,9 +229,9 @@ def ground_map_config_dict(cfg: MeridianConfig) -> dict[str, Any]:
     return {
         "ground_map": cfg.ground_map.model_dump(mode="json", exclude={"batch_size"}),
         "perception": {
-            "ground_segmenter": p.ground_segmenter.model_dump(mode="json"),
-            "descriptor": p.descriptor.model_dump(mode="json"),
-            "global_descriptor": p.global_descriptor.model_dump(mode="json"),
+            "ground_segmenter": active_backend_dict(p.ground_segmenter),
+            "descriptor": active_backend_dict(p.descriptor),
+            "global_descriptor": active_backend_dict(p.global_descriptor),
         },
         "primitives": cfg.primitives.model_dump(mode="json"),
     }

@@ -6,7 +6,7 @@ and a `Literal` value without touching the classical ones. Only pydantic is impo
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, get_args
 
 from pydantic import Field
 
@@ -25,6 +25,7 @@ __all__ = [
     "GemConfig",
     "GlobalDescriptorConfig",
     "OnnxGraphsConfig",
+    "active_backend_dict",
 ]
 
 # DINOv2 ViT-S/B/L/G with patch 14; "_reg" adds 4 register tokens; "tiny" is for tests and CI.
@@ -265,3 +266,14 @@ class OnnxGraphsConfig(StrictModel):
     )
     anyloc_facet_path: str | None = Field(default=None, description="anyloc-facet graph of global_descriptor.anyloc")
     vlad_head_path: str | None = Field(default=None, description="vlad-head graph of global_descriptor.anyloc")
+
+
+def active_backend_dict(block: StrictModel) -> dict[str, Any]:
+    """A segmenter/describer config as JSON without the blocks of back ends it does not use.
+
+    Map and submap files store (and compare) this, so adding or changing an unused back end's
+    options never invalidates them.
+    """
+    data = block.model_dump(mode="json")
+    names = get_args(type(block).model_fields["backend"].annotation)
+    return {key: value for key, value in data.items() if key not in names or key == getattr(block, "backend")}
