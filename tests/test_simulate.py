@@ -111,5 +111,9 @@ def test_check_cli_on_simulated_sequence(tiny_sequence: Path) -> None:
 def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")])
     assert result.exit_code == 0, result.output
-    assert (tmp_path / "out" / "preview.png").is_file()
-    assert (tmp_path / "out" / "config.yaml").is_file()
+    out = tmp_path / "out"
+    for name in ("preview.png", "config.yaml", "aerial_map.png", "report.md", "metrics.json", "submaps.csv"):
+        assert (out / name).is_file(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_submaps"] >= 10 and metrics["n_frames"] > 300
+    assert "ATE final" in result.output and "demo finished" in result.output
