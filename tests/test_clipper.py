@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 from collections.abc import Iterator
 
 import numpy as np
@@ -340,3 +341,16 @@ def test_numpy_inputs_equal_torch_inputs() -> None:
     torch.testing.assert_close(from_torch.u, from_numpy.u)
     with pytest.raises(ValueError, match="M"):
         solve_clipper(np.array([["a", "b"], ["c", "d"]]))
+
+
+def test_dense_problem_never_collapses_to_the_empty_set() -> None:
+    # A 42-association loop-closure graph from the demo world (86 % of pairs consistent) on which
+    # the default data-driven initial penalty once made a full step clamp u to zero, and the zero
+    # vector (F = 0) was accepted because it beat the heavily penalised negative objective.
+    M = torch.from_numpy(np.load(Path(__file__).parent / "data" / "clipper_dense_collapse.npy"))
+    result = solve_clipper(M, generator=torch.Generator().manual_seed(0))
+    chosen = torch.nonzero(result.inliers[0]).flatten()
+    assert len(chosen) >= 3
+    assert bool((M[chosen][:, chosen] > 0).all())  # a clique of the consistency graph
+    gentle = solve_clipper(M, generator=torch.Generator().manual_seed(0), cfg=ClipperConfig(initial_d=0.5))
+    assert float(result.score[0]) >= 0.99 * float(gentle.score[0])

@@ -373,7 +373,10 @@ def _ascend(
             u_n = torch.where(s, cand, u_n)
             g_n = torch.where(s, g_c, g_n)
             F_n = torch.where(searching, F_c, F_n)
-            searching = searching & (F_c - F_l < -slack)
+            # A step that clamps every entry to zero is no solution, although F = 0 can beat
+            # the negative F of a heavily penalised dense problem: shrink the step instead.
+            collapsed = (cand.abs().sum(-1) == 0) & (u_l.abs().sum(-1) > 0)
+            searching = searching & ((F_c - F_l < -slack) | collapsed)
             if not bool(searching.any()):
                 break
             alpha = torch.where(searching, alpha * cfg.beta, alpha)
