@@ -19,9 +19,6 @@ All coordinates are world metres (x east, y north). Files are written atomically
 
 from __future__ import annotations
 
-import hashlib
-import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,9 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from meridian_torch import __version__
 from meridian_torch.errors import MeridianError
-from meridian_torch.io.atomic import atomic_path
+from meridian_torch.io.npz_container import read_container, write_container
 from meridian_torch.mapping.tiling import PatchGrid
 from meridian_torch.types import PrimitiveBatch
 
@@ -83,9 +79,6 @@ def _arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:
 
 def _header(aerial_map: AerialMap) -> dict[str, Any]:
     return {
-        "format": MAP_FORMAT,
-        "format_version": MAP_FORMAT_VERSION,
-        "package_version": __version__,
         "georeference": {
             "meters_per_pixel": aerial_map.meters_per_pixel,
             "origin": list(aerial_map.origin_xy),
@@ -98,27 +91,11 @@ def _header(aerial_map: AerialMap) -> dict[str, Any]:
     }
 
 
-def _content_hash(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256(json.dumps({k: v for k, v in header.items() if k != "content_hash"}, sort_keys=True).encode())
-    for name in sorted(arrays):
-        a = arrays[name]
-        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
 def save_aerial_map(aerial_map: AerialMap, path: Path) -> str:
     """Write `aerial_map` to `path` atomically and return its content hash."""
-    arrays = _arrays(aerial_map)
-    header = _header(aerial_map)
-    header["content_hash"] = _content_hash(header, arrays)
-    arrays["header.json"] = np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    aerial_map.content_hash = header["content_hash"]
-    return header["content_hash"]
+    digest = write_container(path, MAP_FORMAT, MAP_FORMAT_VERSION, _header(aerial_map), _arrays(aerial_map))
+    aerial_map.content_hash = digest
+    return digest
 
 
 def _config_differences(stored: Any, expected: Any, prefix: str = "") -> list[str]:
@@ -132,27 +109,7 @@ def _config_differences(stored: Any, expected: Any, prefix: str = "") -> list[st
 
 def load_aerial_map(path: Path, expected_config: dict[str, Any] | None = None) -> AerialMap:
     """Read and verify a map file; `expected_config` (if given) must equal the stored config."""
-    path = Path(path)
-    if not path.is_file():
-        raise MapFileError(f"{path}: aerial map file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise MapFileError(f"{path}: not a readable aerial map file ({exc})") from None
-    try:
-        header = json.loads(arrays.pop("header.json").tobytes().decode())
-    except (KeyError, UnicodeDecodeError, json.JSONDecodeError):
-        raise MapFileError(f"{path}: missing or unreadable header.json") from None
-    if header.get("format") != MAP_FORMAT:
-        raise MapFileError(f"{path}: not a meridian-torch aerial map (format {header.get('format')!r})")
-    if header.get("format_version") != MAP_FORMAT_VERSION:
-        raise MapFileError(
-            f"{path}: map format version {header.get('format_version')} (written by meridian-torch "
-            f"{header.get('package_version')}), this version reads {MAP_FORMAT_VERSION}; rebuild the map"
-        )
-    if _content_hash(header, arrays) != header.get("content_hash"):
-        raise MapFileError(f"{path}: content hash mismatch, the file is corrupted; rebuild the map")
+    header, arrays = read_container(path, MAP_FORMAT, MAP_FORMAT_VERSION, MapFileError, "aerial map file", "rebuild the map")
     if expected_config is not None:
         diffs = _config_differences(header["config"], expected_config)
         if diffs:

@@ -18,18 +18,14 @@ Coordinates are metres in the odometry frame's x-y plane. Files are written atom
 
 from __future__ import annotations
 
-import hashlib
-import json
-import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from meridian_torch import __version__
 from meridian_torch.errors import MeridianError
-from meridian_torch.io.atomic import atomic_path
+from meridian_torch.io.npz_container import read_container, write_container
 from meridian_torch.types import GroundSubmap, PrimitiveSet
 
 __all__ = ["SUBMAP_FORMAT", "SUBMAP_FORMAT_VERSION", "SubmapFileError", "save_ground_submaps", "load_ground_submaps"]
@@ -76,15 +72,6 @@ def _arrays(submaps: list[GroundSubmap], descriptor_dim: int, global_dim: int) -
     return arrays
 
 
-def _content_hash(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256(json.dumps({k: v for k, v in header.items() if k != "content_hash"}, sort_keys=True).encode())
-    for name in sorted(arrays):
-        a = arrays[name]
-        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
 def save_ground_submaps(
     submaps: list[GroundSubmap],
     path: Path,
@@ -99,46 +86,15 @@ def save_ground_submaps(
     d = descriptor_dim if not submaps else submaps[0].primitives.descriptor_dim
     dg = global_descriptor_dim if not submaps else int(submaps[0].frame_descriptors.shape[1])
     arrays = _arrays(submaps, int(d or 0), int(dg or 0))
-    header = {
-        "format": SUBMAP_FORMAT,
-        "format_version": SUBMAP_FORMAT_VERSION,
-        "package_version": __version__,
-        "num_submaps": len(submaps),
-        "config": config or {},
-        "source": source or {},
-    }
-    header["content_hash"] = _content_hash(header, arrays)
-    arrays["header.json"] = np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    return header["content_hash"]
+    header = {"num_submaps": len(submaps), "config": config or {}, "source": source or {}}
+    return write_container(path, SUBMAP_FORMAT, SUBMAP_FORMAT_VERSION, header, arrays)
 
 
 def load_ground_submaps(path: Path) -> tuple[list[GroundSubmap], dict[str, Any]]:
     """Read and verify a submap file: (submaps, header)."""
-    path = Path(path)
-    if not path.is_file():
-        raise SubmapFileError(f"{path}: ground submap file not found")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise SubmapFileError(f"{path}: not a readable ground submap file ({exc})") from None
-    try:
-        header = json.loads(arrays.pop("header.json").tobytes().decode())
-    except (KeyError, UnicodeDecodeError, json.JSONDecodeError):
-        raise SubmapFileError(f"{path}: missing or unreadable header.json") from None
-    if header.get("format") != SUBMAP_FORMAT:
-        raise SubmapFileError(f"{path}: not a meridian-torch ground submap file (format {header.get('format')!r})")
-    if header.get("format_version") != SUBMAP_FORMAT_VERSION:
-        raise SubmapFileError(
-            f"{path}: submap format version {header.get('format_version')} (written by meridian-torch "
-            f"{header.get('package_version')}), this version reads {SUBMAP_FORMAT_VERSION}; map the sequence again"
-        )
-    if _content_hash(header, arrays) != header.get("content_hash"):
-        raise SubmapFileError(f"{path}: content hash mismatch, the file is corrupted; map the sequence again")
+    header, arrays = read_container(
+        path, SUBMAP_FORMAT, SUBMAP_FORMAT_VERSION, SubmapFileError, "ground submap file", "map the sequence again"
+    )
 
     def rows(owner: str, s: int) -> slice:
         o = arrays[owner]
