@@ -8,7 +8,6 @@ trajectory. Stage timings and the real-time factor make the run's cost visible.
 
 from __future__ import annotations
 
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,7 +17,7 @@ from meridian_torch.config import MeridianConfig
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.ground_map import GroundMapper
-from meridian_torch.runtime import Runtime
+from meridian_torch.runtime import Runtime, peak_rss_mib
 from meridian_torch.types import GroundSubmap
 
 __all__ = ["SequenceRun", "localize_sequence"]
@@ -40,8 +39,6 @@ class SequenceRun:
         return self.sequence_duration_s / max(self.seconds.get("total", 0.0), 1e-9)
 
 
-def _peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
 
 
 def localize_sequence(
@@ -98,5 +95,5 @@ def localize_sequence(
         submaps=submaps,
         seconds=seconds,
         sequence_duration_s=float(times[-1] - times[0]),
-        peak_memory_mib=_peak_rss_mib(),
+        peak_memory_mib=peak_rss_mib(),
     )

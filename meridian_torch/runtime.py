@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import resource
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -9,7 +12,7 @@ import torch
 from meridian_torch.config import RuntimeConfig
 from meridian_torch.errors import ConfigError
 
-__all__ = ["Runtime", "resolve_runtime"]
+__all__ = ["Runtime", "resolve_runtime", "peak_rss_mib", "current_rss_mib"]
 
 
 @dataclass(frozen=True)
@@ -28,3 +31,23 @@ def resolve_runtime(cfg: RuntimeConfig) -> Runtime:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"runtime.device: {cfg.device!r} requested but no CUDA device is available")
     return Runtime(device=torch.device(name), dtype=getattr(torch, cfg.dtype))
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process, MiB. Linux: VmHWM, which (unlike ru_maxrss, kept
+    across exec) starts afresh in a new program, so a child does not inherit its parent's peak."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024.0
+    except (OSError, StopIteration):
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def current_rss_mib() -> float:
+    """Current resident set size of this process, MiB (the peak where /proc is missing)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return peak_rss_mib()

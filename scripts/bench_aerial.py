@@ -16,7 +16,6 @@ Memory: ru_maxrss (peak resident set, MiB) after the world/orthophoto and after 
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ import meridian_torch.mapping.aerial_map as aerial_map_module
 from meridian_torch.config import load_config
 from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
 from meridian_torch.mapping.tiling import tile_image
+from meridian_torch.runtime import peak_rss_mib
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,8 +60,6 @@ class _Proxy:
         return getattr(self._inner, name)
 
 
-def _maxrss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def _patch_count(size_m: float, mpp: float, patch_m: float, overlap: float) -> int:
@@ -99,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         side_px = int(round((cfg.aerial_map.patch_size_m + (side_patches - 1) * stride) / args.mpp))
         ortho = Orthophoto(np.ascontiguousarray(ortho.image[:side_px, :side_px]), ortho.meters_per_pixel,
                            ortho.origin_xy, ortho.crs)
-    rss_before = _maxrss_mib()
+    rss_before = peak_rss_mib()
     w, h = ortho.size_px
     area_km2 = w * h * args.mpp**2 / 1e6
     print(f"world + orthophoto: {t_world:.1f} s; image {w}x{h} px = {area_km2:.3f} km^2; "
@@ -126,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         total = time.perf_counter() - t0
     finally:
         aerial_map_module.segments_to_primitives = original
-    rss_after = _maxrss_mib()
+    rss_after = peak_rss_mib()
 
     n_patches = len(amap.patches)
     per_patch = total / n_patches

@@ -12,15 +12,14 @@ process's peak resident memory so far, and the precision and recall of the plant
 from __future__ import annotations
 
 import argparse
-import resource
 import statistics
-import sys
 import time
 
 import torch
 
 from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.config import ClipperConfig
+from meridian_torch.runtime import peak_rss_mib
 
 __all__ = ["planted_clique_problem", "bench_clipper", "main"]
 
@@ -43,10 +42,6 @@ def planted_clique_problem(
     return M, truth
 
 
-def _peak_rss_mib() -> float:
-    """Peak resident set size of this process (Linux reports KiB, macOS bytes)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
 def bench_clipper(
@@ -65,7 +60,7 @@ def bench_clipper(
     (process peak so far), baseline_rss_mib (peak before the first problem: imports),
     iterations, penalty_updates, selected, precision, recall.
     """
-    baseline = _peak_rss_mib()
+    baseline = peak_rss_mib()
     rows = []
     for i, n in enumerate(sizes):
         M, truth = planted_clique_problem(n, clique, density, seed + i, dtype)
@@ -85,7 +80,7 @@ def bench_clipper(
                     "rounding": rounding,
                     "dtype": str(dtype).removeprefix("torch."),
                     "time_ms": 1e3 * statistics.median(times),
-                    "peak_rss_mib": _peak_rss_mib(),
+                    "peak_rss_mib": peak_rss_mib(),
                     "baseline_rss_mib": baseline,
                     "iterations": int(result.iterations[0]),
                     "penalty_updates": int(result.penalty_updates[0]),

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -27,6 +26,7 @@ from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping import ground_map, ground_observations
 from meridian_torch.mapping.ground_map import GroundMapper
 from meridian_torch.runtime import resolve_runtime
+from meridian_torch.runtime import peak_rss_mib
 
 
 def _timed(table: dict[str, float], name: str, fn):
@@ -83,7 +83,7 @@ def main() -> None:
     wall = time.perf_counter() - started
     stages["frame loading"] = load
     duration = float(reader.frame_times[n - 1] - reader.frame_times[0]) + 1.0 / cfg.sim.trajectory.frame_rate_hz
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = peak_rss_mib()
     result = {
         "sequence": str(seq), "frames": n, "threads": torch.get_num_threads(), "submaps": len(submaps),
         "wall_s": wall, "fps": n / wall, "real_time_factor": duration / wall, "peak_rss_mb": peak_mb,

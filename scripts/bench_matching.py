@@ -33,28 +33,18 @@ import dataclasses
 import json
 import math
 import os
-import resource
 import subprocess
 import sys
 import time
+
+from meridian_torch.runtime import current_rss_mib, peak_rss_mib
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULT_TAG = "BENCH_MATCHING_RESULT "
 
 
-def _peak_rss_mib() -> float:
-    """Peak resident set size of this process so far (Linux: KiB, macOS: bytes)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
-def _current_rss_mib() -> float:
-    """Current resident set size (Linux /proc; falls back to the peak elsewhere)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except OSError:
-        return _peak_rss_mib()
 
 
 # --------------------------------------------------------------------------------------------
@@ -179,7 +169,7 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     from meridian_torch.matching.particles import patch_seeds
     from meridian_torch.types import stack_primitive_sets
 
-    rss_imports = _peak_rss_mib()
+    rss_imports = peak_rss_mib()
     ground, patches, true_idx, truth = build_scene(args)
     cfg = make_config(args)
 
@@ -198,8 +188,8 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     g1, g2 = torch.Generator().manual_seed(args.seed), torch.Generator().manual_seed(args.seed)
     same_seeds = torch.equal(patch_seeds(len(patches), g1), torch.cat([patch_seeds(1, g2) for _ in patches]))
 
-    rss_before = _current_rss_mib()
-    peak_before = _peak_rss_mib()
+    rss_before = current_rss_mib()
+    peak_before = peak_rss_mib()
     gen = torch.Generator().manual_seed(args.seed)
     per_patch = []
     cpu0 = time.process_time()
@@ -219,7 +209,7 @@ def run_match_mode(args: argparse.Namespace) -> dict:
             tops.append(_top(hyp, 0, truth))
         elapsed = time.perf_counter() - t0
     cpu = time.process_time() - cpu0
-    peak_after = _peak_rss_mib()
+    peak_after = peak_rss_mib()
     best = max(range(len(patches)), key=lambda p: tops[p]["objective"] if tops[p]["valid"] else -1.0)
     return {
         "mode": args.mode,

@@ -21,33 +21,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 
+from meridian_torch.runtime import current_rss_mib, peak_rss_mib
+
 RESULT_TAG = "BENCH_MODELS_RESULT "
 CASES = ("vits14-224", "vits14-448", "sam-tiny-encoder", "sam-tiny-decoder")
 
 
-def _peak_rss_mib() -> float:
-    """Peak resident set size of this process. Linux: VmHWM, which (unlike ru_maxrss, kept across
-    exec) starts afresh in a new program, so a child does not inherit its parent's peak."""
-    try:
-        with open("/proc/self/status") as f:
-            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024.0
-    except (OSError, StopIteration):
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
 
 
-def _current_rss_mib() -> float:
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except OSError:
-        return _peak_rss_mib()
 
 
 def _config(case: str):  # noqa: ANN202 - the MeridianConfig import is deferred to keep --help fast
@@ -107,7 +93,7 @@ def child(case: str, engine: str, graph: str, threads: int, warmup: int, repeats
         def run() -> None:
             session.run(None, feeds)
 
-    baseline = _current_rss_mib()
+    baseline = current_rss_mib()
     for _ in range(warmup):
         run()
     times = []
@@ -117,7 +103,7 @@ def child(case: str, engine: str, graph: str, threads: int, warmup: int, repeats
         times.append(time.perf_counter() - start)
     times.sort()
     return {"case": case, "engine": engine, "median_ms": 1e3 * times[len(times) // 2], "min_ms": 1e3 * times[0],
-            "peak_rss_mib": _peak_rss_mib(), "rss_before_runs_mib": baseline}
+            "peak_rss_mib": peak_rss_mib(), "rss_before_runs_mib": baseline}
 
 
 def main() -> None:

@@ -11,7 +11,6 @@ Memory is ru_maxrss (peak resident set of the process, MiB) after each stage.
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 
@@ -23,11 +22,9 @@ from meridian_torch.sim.config import CameraConfig, GroundRenderConfig, OrthoRen
 from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world
+from meridian_torch.runtime import peak_rss_mib
 
 
-def peak_mib() -> float:
-    # Linux reports ru_maxrss in KiB.
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     world = generate_world(world_cfg, args.seed)
     print(f"world {world.shape[1]}x{world.shape[0]} cells at {world.resolution_m} m: "
-          f"{time.perf_counter() - t0:.1f} s, peak {peak_mib():.0f} MiB")
+          f"{time.perf_counter() - t0:.1f} s, peak {peak_rss_mib():.0f} MiB")
 
     cam_cfg = CameraConfig(width=args.width, height=args.height)
     camera = camera_model_from_config(cam_cfg)
@@ -77,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     valid = float((depth > 0).mean())
     print(f"ground frames {args.width}x{args.height}, batch {args.batch}, {args.threads} threads: "
           f"{n / dt:.1f} frames/s ({1000 * dt / n:.1f} ms/frame), valid depth {100 * valid:.0f} %, "
-          f"peak {peak_mib():.0f} MiB")
+          f"peak {peak_rss_mib():.0f} MiB")
 
     if not args.skip_ortho:
         t0 = time.perf_counter()
@@ -86,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         area_km2 = (x_max - x_min) * (y_max - y_min) / 1e6
         h, w = ortho.image.shape[:2]
         print(f"orthophoto {w}x{h} px over {area_km2:.3f} km^2: {dt:.2f} s = {dt / area_km2:.1f} s/km^2, "
-              f"peak {peak_mib():.0f} MiB")
+              f"peak {peak_rss_mib():.0f} MiB")
     return 0
 
 

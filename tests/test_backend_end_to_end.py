@@ -26,14 +26,7 @@ from meridian_torch.types import GroundSubmap, LineKind, PrimitiveSet, stack_pri
 D, DG, SIZE = 16, 8, 150.0
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    # These tensors are small: on a loaded 2-core machine torch's intra-op threads only contend
-    # (measured: the suite ran 3.5x slower with 2 threads than with 1).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

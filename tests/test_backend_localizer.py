@@ -28,14 +28,7 @@ D = 4
 MAP_SIZE_M = 150.0
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    # These tensors are small: on a loaded 2-core machine torch's intra-op threads only contend
-    # (measured: the suite ran 3.5x slower with 2 threads than with 1).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def make_map(seed: int = 0) -> AerialMap:

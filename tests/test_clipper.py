@@ -7,7 +7,6 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -21,14 +20,7 @@ ROUNDINGS = ("clipper", "support", "densest")
 DTYPES = (torch.float32, torch.float64)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread() -> Iterator[None]:
-    """These problems are tiny: on a busy machine intra-op threads only add synchronisation
-    (5-15x slower), so this module runs single-threaded and restores the setting after."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _euclidean_affinity(

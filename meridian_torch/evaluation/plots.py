@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meridian_torch.io.atomic import atomic_path
+from meridian_torch.io.atomic import save_figure_atomic
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.perception.kmeans import cosine_kmeans
@@ -55,11 +55,7 @@ def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Pa
     ax.set_ylabel("y north (m)")
     ax.set_title(f"aerial map: {len(aerial_map)} patches, {len(points)} points, {len(lines)} lines "
                  f"(colour = descriptor cluster)")
-    out_png = Path(out_png)
-    with atomic_path(out_png) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return out_png
+    return save_figure_atomic(fig, out_png)
 
 
 def _se2_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -126,9 +122,4 @@ def plot_ground_submap(
         ax2.set_xlabel("world x east (m)")
         ax2.set_ylabel("world y north (m)")
         ax2.set_title("over the orthophoto through the ground-truth pose")
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_png) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return out_png
+    return save_figure_atomic(fig, out_png)

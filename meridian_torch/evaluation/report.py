@@ -16,7 +16,7 @@ import numpy as np
 
 from meridian_torch.evaluation.trajectory_metrics import trajectory_errors
 from meridian_torch.geometry.trajectory import Trajectory
-from meridian_torch.io.atomic import atomic_path, write_text_atomic
+from meridian_torch.io.atomic import save_figure_atomic, write_text_atomic
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.results import RunOutputs, read_outputs
 
@@ -45,13 +45,6 @@ def _pyplot():
 
     return plt
 
-
-def _save(fig: Any, path: Path) -> Path:
-    plt = _pyplot()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return path
 
 
 def plot_trajectory(
@@ -101,7 +94,7 @@ def plot_trajectory(
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8)
     ax.set_title("trajectory estimate vs ground truth")
-    return _save(fig, Path(out_png))
+    return save_figure_atomic(fig, out_png)
 
 
 def plot_error_vs_distance(
@@ -121,7 +114,7 @@ def plot_error_vs_distance(
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8)
-    return _save(fig, Path(out_png))
+    return save_figure_atomic(fig, out_png)
 
 
 def _fmt(v: Any) -> str:

@@ -12,8 +12,9 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-__all__ = ["write_bytes_atomic", "write_text_atomic", "atomic_path", "atomic_directory"]
+__all__ = ["write_bytes_atomic", "write_text_atomic", "atomic_path", "atomic_directory", "save_figure_atomic"]
 
 
 @contextmanager
@@ -87,3 +88,14 @@ def atomic_directory(path: str | os.PathLike[str], overwrite: bool = False) -> I
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def save_figure_atomic(fig: Any, path: str | os.PathLike[str]) -> Path:
+    """Save a matplotlib figure as PNG at `path` atomically, then close it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meridian_torch.io.atomic import atomic_path
+from meridian_torch.io.atomic import save_figure_atomic
 from meridian_torch.io.sequence import SequenceReader
 
 __all__ = ["write_preview"]
@@ -59,9 +59,4 @@ def write_preview(sequence: Path, out_png: Path, n_frames: int = 6) -> Path:
         ax_depth.set_yticks([])
     fig.colorbar(im, ax=depth_axes, fraction=0.03, pad=0.02, label="depth (m)")
 
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_png) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return out_png
+    return save_figure_atomic(fig, out_png)
