@@ -21,7 +21,7 @@ from meridian_torch.matching.config import AffinityConfig
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
 SEG, RAY, INF = int(LineKind.SEGMENT), int(LineKind.RAY), int(LineKind.INFINITE)
-CFG = AffinityConfig()
+CFG = AffinityConfig(parallel_line_pairs="reject")  # the reference semantics; "separation" is tested explicitly
 TAN = math.tan(math.radians(20.0))
 
 # ------------------------------------------------------------------------------------------
@@ -110,13 +110,30 @@ def angle(d1, d2):
     return math.acos(min(1.0, abs(dot(d1, d2))))
 
 
-def ref_line_line(ai, aj, gi, gj, rotated):
+def ref_separation(li, lj):
+    """Separation vector (line i minus line j, across both directions) of near-parallel lines
+    measured at their reference points, and the along-line offset of the reference points."""
+    w = sub(lj["ref"], li["ref"])
+    across_i = sub(w, (dot(w, li["d"]) * li["d"][0], dot(w, li["d"]) * li["d"][1]))
+    across_j = sub(w, (dot(w, lj["d"]) * lj["d"][0], dot(w, lj["d"]) * lj["d"][1]))
+    v = (-(across_i[0] + across_j[0]) / 2, -(across_i[1] + across_j[1]) / 2)
+    return v, (abs(dot(w, li["d"])) + abs(dot(w, lj["d"]))) / 2
+
+
+def ref_line_line(ai, aj, gi, gj, rotated, parallel="reject"):
     ta, tg = angle(ai["d"], aj["d"]), angle(gi["d"], gj["d"])
-    if ta < math.radians(10) or tg < math.radians(10):
+    par_a, par_g = ta < math.radians(10), tg < math.radians(10)
+    if (par_a or par_g) and (parallel == "reject" or par_a != par_g):
         return 0.0
     s_theta = f(abs(ta - tg), math.radians(20), math.radians(20))
     if s_theta == 0:
         return 0.0
+    if par_a:
+        (va, la), (vg, lg) = ref_separation(ai, aj), ref_separation(gi, gj)
+        if math.hypot(*va) < 3.0 or math.hypot(*vg) < 3.0:
+            return 0.0
+        delta = 0.5 * (math.sin(ta) * la + math.sin(tg) * lg)
+        return math.sqrt(s_theta * ref_point_pair(va, vg, delta, rotated, False))
     cai, caj = ref_closest(ai, aj)
     cgi, cgj = ref_closest(gi, gj)
     lever = (math.dist(ai["ref"], cai) + math.dist(aj["ref"], caj) + math.dist(gi["ref"], cgi) + math.dist(gj["ref"], cgj)) / 4
@@ -149,7 +166,7 @@ def primitive(s: PrimitiveSet, index: int, n_points: int, yaw: float | None):
     return "line", make_line(e, int(s.line_kinds[index - n_points]))
 
 
-def loop_affinity(ground, patches, assoc: Associations, prior: list[float] | None) -> torch.Tensor:
+def loop_affinity(ground, patches, assoc: Associations, prior: list[float] | None, parallel: str = "reject") -> torch.Tensor:
     m = assoc.size
     out = torch.zeros(len(patches), m, m, dtype=torch.float64)
     for p, patch in enumerate(patches):
@@ -186,7 +203,7 @@ def loop_affinity(ground, patches, assoc: Associations, prior: list[float] | Non
                 if ki == kj == "point":
                     s = ref_point_pair(sub(ai, aj), sub(gi, gj), 0.0, rotated, True)
                 elif ki == kj == "line":
-                    s = ref_line_line(ai, aj, gi, gj, rotated)
+                    s = ref_line_line(ai, aj, gi, gj, rotated, parallel)
                 elif ki == "point":
                     s = ref_point_line(ai, gi, aj, gj, rotated)
                 else:
@@ -248,9 +265,15 @@ def identity_assoc(n_points: int, n_lines: int, cosine: float = 1.0) -> Associat
     )
 
 
-def random_scene(gen: torch.Generator, n_points: int, n_lines: int, dim: int = 12) -> PrimitiveSet:
+def random_scene(gen: torch.Generator, n_points: int, n_lines: int, dim: int = 12, roads: bool = False) -> PrimitiveSet:
+    """Random points and lines in a 40 m square; roads=True: lines along two perpendicular
+    directions within a few degrees, like road borders."""
     e0 = torch.rand(n_lines, 2, generator=gen, dtype=torch.float64) * 40
-    ang = torch.rand(n_lines, generator=gen, dtype=torch.float64) * math.pi
+    if roads:
+        axis = torch.randint(0, 2, (n_lines,), generator=gen).double() * math.pi / 2
+        ang = axis + math.radians(4.0) * torch.randn(n_lines, generator=gen, dtype=torch.float64)
+    else:
+        ang = torch.rand(n_lines, generator=gen, dtype=torch.float64) * math.pi
     length = 3 + 12 * torch.rand(n_lines, generator=gen, dtype=torch.float64)
     e1 = e0 + length[:, None] * torch.stack([ang.cos(), ang.sin()], 1)
     desc = lambda n: torch.nn.functional.normalize(torch.randn(n, dim, generator=gen, dtype=torch.float64), dim=1)  # noqa: E731
@@ -300,7 +323,7 @@ def test_affinity_equals_loop(seed: int, with_prior: bool) -> None:
     prior = [float(x) for x in torch.rand(3, generator=gen, dtype=torch.float64) * 6] if with_prior else None
     prior_t = torch.tensor(prior, dtype=torch.float64) if prior is not None else None
     # Small blocks so that several row blocks, both types and the block seams are exercised.
-    cfg = AffinityConfig(block_pairs=500)
+    cfg = AffinityConfig(block_pairs=500, parallel_line_pairs="reject")
     dense = affinity_matrix(ground, batch, assoc, cfg, rotation_prior=prior_t)
     expected = loop_affinity(ground, patches, assoc, prior)
     assert (expected > 0).sum() > 3 * assoc.size  # the case is not trivially empty
@@ -308,11 +331,40 @@ def test_affinity_equals_loop(seed: int, with_prior: bool) -> None:
     sparse = affinity_matrix_sparse(ground, batch, assoc, cfg, rotation_prior=prior_t)
     torch.testing.assert_close(sparse.to_dense(), dense, atol=1e-15, rtol=0)
     # One large block gives the same matrix.
-    torch.testing.assert_close(affinity_matrix(ground, batch, assoc, AffinityConfig(), rotation_prior=prior_t), dense)
+    torch.testing.assert_close(affinity_matrix(ground, batch, assoc, AffinityConfig(parallel_line_pairs="reject"), rotation_prior=prior_t), dense)
     # Padding rows / columns are zero, including the diagonal.
     pad = ~assoc.valid
     assert (dense[pad[:, :, None].expand_as(dense)] == 0).all()
     assert (dense.diagonal(dim1=1, dim2=2) == assoc.valid.double()).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_parallel_separation_equals_loop(seed: int, with_prior: bool) -> None:
+    gen = torch.Generator().manual_seed(10 + seed)
+    ground = random_scene(gen, 3, 14, roads=True)
+    patches, yaws = [], []
+    for n_lines, n_extra in ((14, 2), (10, 3)):
+        # noisy_patch draws its yaw first: read it from a copy of the generator state.
+        yaws.append(float(torch.rand((), generator=torch.Generator().set_state(gen.get_state()))) * 2 * math.pi)
+        patches.append(noisy_patch(ground, gen, 3, n_lines, n_extra))
+    batch = stack_primitive_sets(patches)
+    assoc = putative_associations(ground, batch, k_prim=3)
+    # A prior near the true heading, so that line associations survive its direction test.
+    prior = [y + 0.1 for y in yaws] if with_prior else None
+    prior_t = torch.tensor(prior, dtype=torch.float64) if prior is not None else None
+    cfg = AffinityConfig(block_pairs=500, parallel_line_pairs="separation")
+    dense = affinity_matrix(ground, batch, assoc, cfg, rotation_prior=prior_t)
+    expected = loop_affinity(ground, patches, assoc, prior, parallel="separation")
+    torch.testing.assert_close(dense, expected, atol=1e-9, rtol=0)
+    sparse = affinity_matrix_sparse(ground, batch, assoc, cfg, rotation_prior=prior_t)
+    torch.testing.assert_close(sparse.to_dense(), dense, atol=1e-15, rtol=0)
+    # The mode only adds near-parallel pairs: every 'reject' entry is unchanged, and the case
+    # does exercise parallel pairs.
+    reject = affinity_matrix(ground, batch, assoc, AffinityConfig(block_pairs=500, parallel_line_pairs="reject"), rotation_prior=prior_t)
+    kept = reject > 0
+    torch.testing.assert_close(dense[kept], reject[kept], atol=1e-12, rtol=0)
+    assert int((dense > 0).sum()) >= int(kept.sum()) + 10  # >= 5 parallel pairs, both triangles
 
 
 def test_closest_points_equal_loop() -> None:
@@ -409,9 +461,57 @@ def test_parallel_lines() -> None:
     # With an infinite line, its reference point (midpoint) anchors the pair.
     c1, c2 = closest_points_between_lines(e1, torch.tensor(INF), e2, torch.tensor(SEG))
     assert c1.tolist() == [5.0, 0.0] and c2.tolist() == [5.0, 3.0]
-    # Parallel (< 10 deg) same-map line pairs are never consistent, even when identical.
+    # Reference mode: parallel (< 10 deg) same-map line pairs are never consistent, even when identical.
     par = [[[0, 0], [10, 0]], [[0, 5], [10, 5.5]]]
     assert lines_pair(par, par, [SEG, SEG]) == 0.0
+
+
+def parallel_pair(a_lines, g_lines, prior: float | None = None) -> float:
+    """M_01 of two segment associations in 'separation' mode."""
+    aerial, ground = make_set([], a_lines, [SEG, SEG]), make_set([], g_lines, [SEG, SEG])
+    cfg = AffinityConfig(parallel_line_pairs="separation")
+    yaw = None if prior is None else torch.tensor([prior], dtype=torch.float64)
+    m = affinity_matrix(ground, stack_primitive_sets([aerial]), identity_assoc(0, 2), cfg, rotation_prior=yaw)
+    return float(m[0, 0, 1])
+
+
+def moved(lines, yaw: float, t: tuple[float, float]):
+    """Lines [[p0, p1], ...] rotated by yaw, then translated by t."""
+    return [[[rot(yaw, p)[0] + t[0], rot(yaw, p)[1] + t[1]] for p in ln] for ln in lines]
+
+
+def test_parallel_pairs_score_their_separation() -> None:
+    ground = [[[0, 0], [10, 0]], [[0, 5], [10, 5]]]
+    # A rigid copy, and one with the second line reversed (lines are sign-less): full score.
+    aerial = moved(ground, 0.7, (30.0, -4.0))
+    assert parallel_pair(aerial, ground) == pytest.approx(1.0)
+    assert parallel_pair([aerial[0], aerial[1][::-1]], ground) == pytest.approx(1.0)
+    # Shifted along the lines: the separation (of infinite lines) is unchanged.
+    assert parallel_pair(aerial, [ground[0], [[6, 5], [16, 5]]]) == pytest.approx(1.0)
+    # Separation 6 m instead of 5 m, exactly parallel (no lever inflation): s_theta = 1,
+    # s_t = f(1; 2, 2), M = cbrt(sqrt(s_t)).
+    wider = moved([[[0, 0], [10, 0]], [[0, 6], [10, 6]]], 0.7, (30.0, -4.0))
+    assert parallel_pair(wider, ground) == pytest.approx(math.exp(-1 / 8) ** (1 / 6))
+    # 7.5 m against 5 m is past eps_t = 2 m; 2.5 m separations fall under the 3 m minimum.
+    far = moved([[[0, 0], [10, 0]], [[0, 7.5], [10, 7.5]]], 0.7, (30.0, -4.0))
+    assert parallel_pair(far, ground) == 0.0
+    close = [[[0, 0], [10, 0]], [[0, 2.5], [10, 2.5]]]
+    assert parallel_pair(close, close) == 0.0
+    # Parallel in one map only (5 deg vs 15 deg): the angle kernel alone would accept it.
+    tilt = lambda deg: [[0, 5], [10, 5 + 10 * math.tan(math.radians(deg))]]  # noqa: E731
+    assert parallel_pair([ground[0], tilt(15.0)], [ground[0], tilt(5.0)]) == 0.0
+    assert parallel_pair([ground[0], tilt(5.0)], [ground[0], tilt(5.0)]) > 0.9
+    # The default ('reject') still zeroes them.
+    assert lines_pair(ground, ground, [SEG, SEG]) == 0.0
+
+
+def test_parallel_pairs_with_rotation_prior_compare_signed_offsets() -> None:
+    ground = [[[0, 0], [10, 0]], [[0, 5], [10, 5]]]
+    # The aerial pair is the ground pair turned by 180 deg: the second line lies on the other side.
+    aerial = moved(ground, math.pi, (40.0, 10.0))
+    assert parallel_pair(aerial, ground) == pytest.approx(1.0)  # free rotation: unsigned
+    assert parallel_pair(aerial, ground, prior=math.pi) == pytest.approx(1.0)
+    assert parallel_pair(aerial, ground, prior=0.0) == 0.0  # offsets (0, 5) vs (0, -5)
 
 
 def test_point_line_along_across() -> None:

@@ -10,6 +10,9 @@ unary semantic score and s the pairwise geometric consistency:
   map (near-parallel same-map pairs are rejected), s_t compares the gaps between the closest
   points of the bounded lines (segments / rays / infinite lines), with the distance sigma
   inflated by tan(sigma_theta) times the mean lever arm from each line's reference point;
+  with `parallel_line_pairs = "separation"`, pairs near-parallel in both maps are scored by
+  the angle kernel and the invariance of the perpendicular separation of the two lines
+  instead (ground submaps of roads consist mostly of such pairs);
 - point-line: along-line and across-line offsets of the point from its nearest point N on the
   line, scored with sigma/sqrt(2) (+ lever-arm inflation across), and capped by the
   point-point score of (p, N).
@@ -25,7 +28,8 @@ every point-point test is then also done per axis with sigma and eps inflated by
 an absolute-direction term.
 
 The reference "line min-distance" veto (near-parallel lines closer than min_dist) is not
-repeated: near-parallel same-map line pairs are already rejected by the angle test.
+repeated in 'reject' mode: near-parallel same-map line pairs are already rejected by the angle
+test; in 'separation' mode it zeroes near-parallel pairs separated by less than min_dist.
 
 Reference points of lines (lever arms): segment midpoint, ray start, midpoint of the two
 points that define an infinite line.
@@ -276,17 +280,31 @@ def _angle_between(phi_1: torch.Tensor, phi_2: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------
 
 
-def _line_pair_table(l_i: _Lines, l_j: _Lines, with_vectors: bool) -> torch.Tensor:
-    """(F, ...) for every pair of lines: [angle, gap length, lever sum (, gap x, gap y)].
+def _line_pair_table(l_i: _Lines, l_j: _Lines, with_vectors: bool, parallel_below: float | None) -> torch.Tensor:
+    """(F, ...) for every pair of lines: [angle, gap length, lever (, gap x, gap y)].
 
     The gap is c_i - c_j between the closest points (exactly zero where the lines touch); the
-    lever sum is |ref_i - c_i| + |ref_j - c_j|.
+    lever is |ref_i - c_i| + |ref_j - c_j|. Pairs whose angle is below `parallel_below` (None:
+    no such pairs) get their separation instead: the part of w = ref_j - ref_i across the two
+    lines, w - ((w.d_i) d_i + (w.d_j) d_j) / 2 (independent of the direction signs), and as
+    lever sin(angle) * (|w.d_i| + |w.d_j|) / 2, how much the separation can change between
+    where the two maps measure it.
     """
     s_i, s_j, meet = _closest_params(l_i, l_j)
     gx = (l_i.ox + s_i * l_i.dx - l_j.ox - s_j * l_j.dx).masked_fill(meet, 0.0)
     gy = (l_i.oy + s_i * l_i.dy - l_j.oy - s_j * l_j.dy).masked_fill(meet, 0.0)
     angle = _angle_between(l_i.angle(), l_j.angle())
     lever = (l_i.tref - s_i).abs() + (l_j.tref - s_j).abs()
+    if parallel_below is not None:
+        wx = l_j.ox + l_j.tref * l_j.dx - l_i.ox - l_i.tref * l_i.dx
+        wy = l_j.oy + l_j.tref * l_j.dy - l_i.oy - l_i.tref * l_i.dy
+        w_di, w_dj = wx * l_i.dx + wy * l_i.dy, wx * l_j.dx + wy * l_j.dy
+        # Reversed signs so that the vector is c_i - c_j like the gap.
+        sx = 0.5 * (w_di * l_i.dx + w_dj * l_j.dx) - wx
+        sy = 0.5 * (w_di * l_i.dy + w_dj * l_j.dy) - wy
+        parallel = angle < parallel_below
+        gx, gy = torch.where(parallel, sx, gx), torch.where(parallel, sy, gy)
+        lever = torch.where(parallel, torch.sin(angle) * 0.5 * (w_di.abs() + w_dj.abs()), lever)
     fields_ = [angle, torch.hypot(gx, gy), lever] + ([gx, gy] if with_vectors else [])
     return torch.stack(torch.broadcast_tensors(*fields_))
 
@@ -307,20 +325,37 @@ def _point_line_table(px: torch.Tensor, py: torch.Tensor, line: _Lines, with_vec
 
 
 def _line_line_score(a: torch.Tensor, g: torch.Tensor, cfg: AffinityConfig, rotated: bool) -> torch.Tensor:
-    """s = sqrt(s_theta * s_t) from gathered line-pair table fields a (aerial), g (ground)."""
+    """s = sqrt(s_theta * s_t) from gathered line-pair table fields a (aerial), g (ground).
+
+    Near-parallel pairs (angle below min_line_angle_deg) score 0 with parallel_line_pairs =
+    'reject'; with 'separation', pairs near-parallel in both maps compare their separations
+    (the table's gap fields) and pairs near-parallel in one map only score 0.
+    """
     theta_a, theta_g = a[0], g[0]
     s_theta = kernel(
         (theta_a - theta_g).abs(), math.radians(cfg.sigma_theta_deg), math.radians(cfg.epsilon_theta_deg)
     )
     min_angle = math.radians(cfg.min_line_angle_deg)
-    s_theta = s_theta.masked_fill((theta_a < min_angle) | (theta_g < min_angle), 0.0)
-    delta = math.tan(math.radians(cfg.sigma_theta_deg)) * 0.25 * (a[2] + g[2]) if cfg.lever_arm_inflation else 0.0
+    par_a, par_g = theta_a < min_angle, theta_g < min_angle
+    separation = cfg.parallel_line_pairs == "separation"
+    s_theta = s_theta.masked_fill((par_a != par_g) if separation else (par_a | par_g), 0.0)
+    if cfg.lever_arm_inflation:
+        delta = math.tan(math.radians(cfg.sigma_theta_deg)) * 0.25 * (a[2] + g[2])
+        if separation:  # the parallel lever is already a distance (sin(angle) * offset)
+            delta = torch.where(par_a, 0.5 * (a[2] + g[2]), delta)
+    else:
+        delta = 0.0
     if rotated:
         s_t = _point_pair_score(a[3], a[4], g[3], g[4], delta, cfg, True, min_separation=False)
     else:
         # Only the gap lengths matter: pass them as vectors along x.
         zero = torch.zeros_like(theta_a)
         s_t = _point_pair_score(a[1], zero, g[1], zero, delta, cfg, False, min_separation=False)
+    if separation:
+        # Like the reference's line min-distance veto: near-parallel lines this close are
+        # likely two edges of one structure and say little about the pose.
+        too_close = (a[1] < cfg.min_point_separation_m) | (g[1] < cfg.min_point_separation_m)
+        s_t = s_t.masked_fill(par_a & too_close, 0.0)
     return torch.sqrt(s_theta * s_t)
 
 
@@ -394,6 +429,9 @@ def _rotate(cos: torch.Tensor, sin: torch.Tensor, x: torch.Tensor, y: torch.Tens
 # Gates compare rotation-invariant table values that the exact scores recompute from rotated
 # or differently rounded inputs; this slack (metres or radians) keeps the gate a strict superset.
 _GATE_SLACK = 1e-3
+# Gate value of near-parallel line pairs = offset + scaled separation (see `_gate_tables`);
+# float32 still resolves the slack at this magnitude for separations up to a few km.
+_PARALLEL_GATE_OFFSET = 1e3
 
 
 def _gate_tables(
@@ -405,7 +443,8 @@ def _gate_tables(
     Point-point: the distance (NaN when closer than the minimum separation, so the gate fails);
     point-line: |p - N|, which every point-line score compares with eps_t (the capping
     point-point score of (p, N), whose eps is never inflated); line-line: the angle between
-    the lines (NaN below the minimum line angle). An association pair can score non-zero only
+    the lines (NaN below the minimum line angle; in 'separation' mode near-parallel pairs carry
+    their separation instead, see `line_pairs`). An association pair can score non-zero only
     if its aerial and ground values differ by at most eps_t (eps_theta for lines).
     """
     def same_type(value: torch.Tensor, minimum: float) -> torch.Tensor:
@@ -418,14 +457,25 @@ def _gate_tables(
     def distances(xy: torch.Tensor) -> torch.Tensor:
         return torch.hypot(xy[..., :, None, 0] - xy[..., None, :, 0], xy[..., :, None, 1] - xy[..., None, :, 1])
 
+    def line_pairs(ll: torch.Tensor) -> torch.Tensor:
+        min_angle = math.radians(cfg.min_line_angle_deg)
+        if cfg.parallel_line_pairs == "reject":
+            return same_type(ll[0], min_angle - _GATE_SLACK)
+        # Near-parallel pairs: the separation in angle units (eps_t maps to eps_theta), shifted
+        # far above every angle so that pairs parallel in one map only fail the gate too.
+        scale = math.radians(cfg.epsilon_theta_deg) / cfg.epsilon_t_m
+        too_close = ll[1] < cfg.min_point_separation_m - _GATE_SLACK
+        parallel = torch.where(too_close, float("nan"), _PARALLEL_GATE_OFFSET + scale * ll[1])
+        return same_type(torch.where(ll[0] < min_angle, parallel, ll[0]), float("-inf"))
+
     # Point-line pairs never share a primitive (points and lines are indexed apart).
     return (
         same_type(distances(a_xy), cfg.min_point_separation_m - _GATE_SLACK),
         same_type(distances(g_xy), cfg.min_point_separation_m - _GATE_SLACK),
         torch.hypot(a_pl[0], a_pl[1]).flatten(),
         torch.hypot(g_pl[0], g_pl[1]).flatten(),
-        same_type(a_ll[0], math.radians(cfg.min_line_angle_deg) - _GATE_SLACK),
-        same_type(g_ll[0], math.radians(cfg.min_line_angle_deg) - _GATE_SLACK),
+        line_pairs(a_ll),
+        line_pairs(g_ll),
     )
 
 
@@ -459,8 +509,9 @@ def _gather(
     a_xy, g_xy = aerial.points_xy, ground.points_xy
     a_pl = _point_line_table(a_xy[..., :, None, 0], a_xy[..., :, None, 1], a_lines.map_axis(-2), with_vectors)
     g_pl = _point_line_table(g_xy[..., :, None, 0], g_xy[..., :, None, 1], g_lines.map_axis(-2), with_vectors)
-    a_ll = _line_pair_table(a_lines.map_axis(-1), a_lines.map_axis(-2), with_vectors)
-    g_ll = _line_pair_table(g_lines.map_axis(-1), g_lines.map_axis(-2), with_vectors)
+    parallel_below = math.radians(cfg.min_line_angle_deg) if cfg.parallel_line_pairs == "separation" else None
+    a_ll = _line_pair_table(a_lines.map_axis(-1), a_lines.map_axis(-2), with_vectors, parallel_below)
+    g_ll = _line_pair_table(g_lines.map_axis(-1), g_lines.map_axis(-2), with_vectors, parallel_below)
     gates = _gate_tables(a_xy, g_xy, a_pl, g_pl, a_ll, g_ll, cfg)
 
     g_points = g_xy[g_pt]
