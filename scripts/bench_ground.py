@@ -8,7 +8,7 @@ real-time factor (sequence duration / wall time) and the peak resident memory of
 Timing is per stage with time.perf_counter around the mapper's calls; numbers depend on the
 machine's load, so say how loaded it was when quoting them.
 
-Example: python scripts/bench_ground.py --threads 2 /tmp/g_demo -c configs/demo.yaml
+Example: python scripts/bench_ground.py --threads 2 demo-sequence -c configs/demo.yaml
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ artefact fraction  the share of predicted line length that is NOT near a GT line
         the submaps made without the artefact-line test, to show what it removes.
 Totals pool all submaps (length- / count-weighted).
 
-Example: python scripts/eval_submaps.py /tmp/g_demo -c configs/demo.yaml --unfiltered
+Example: python scripts/eval_submaps.py demo-sequence -c configs/demo.yaml --unfiltered
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ Variants:
                colours, some objects removed or added) while the robot sees today's world
 
 Usage:
-  python scripts/exp_localization.py --work-dir /tmp/meridian-exp [--sequences 00 09] \
+  python scripts/exp_localization.py --work-dir runs/exp [--sequences 00 09] \
       [--variants default no-scaling outdated] [--max-frames 600] [--set key=value ...]
 """
 

@@ -17,8 +17,8 @@ first into `--work` (short drives via `--drive-m`).
 
     python scripts/exp_registration.py --sequence runs/kitti09 --map runs/kitti09/aerial.mtm \
         -c configs/kitti09.yaml --max-submaps 20
-    python scripts/exp_registration.py --simulate configs/kitti00.yaml --work /tmp/exp00 --max-frames 300
-    python scripts/exp_registration.py --simulate configs/demo.yaml --work /tmp/exp_demo --drive-m 600
+    python scripts/exp_registration.py --simulate configs/kitti00.yaml --work runs/exp00 --max-frames 300
+    python scripts/exp_registration.py --simulate configs/demo.yaml --work runs/exp_demo --drive-m 600
 """
 
 from __future__ import annotations
@@ -303,7 +303,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("-c", "--config", type=Path, default=None, help="config (default configs/default.yaml)")
     p.add_argument("--set", action="append", default=[], help="config override key=value (repeatable)")
     p.add_argument("--simulate", type=Path, default=None, help="simulate a sequence and build its map from this config")
-    p.add_argument("--work", type=Path, default=Path("/tmp/exp_registration"), help="output folder of --simulate")
+    p.add_argument("--work", type=Path, default=Path("runs/exp_registration"), help="output folder of --simulate")
     p.add_argument("--drive-m", type=float, default=None, help="with --simulate: drive length (m), procedural worlds")
     p.add_argument("--max-frames", type=int, default=None,
                    help="frames used (3 frames/s); with --simulate also the frames simulated")
