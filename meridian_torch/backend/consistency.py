@@ -149,6 +149,19 @@ class InlierSelection:
         return int(self.inliers.sum())
 
 
+def _dense_block(n: int, edges: tuple[Tensor, Tensor, Tensor], members: Tensor) -> Tensor:
+    """The symmetric (k, k) affinity among `members` (k of the n candidates) from the sparse
+    upper-triangle edges (i, j, v); zero diagonal."""
+    i, j, v = edges
+    local = torch.full((n,), -1, dtype=torch.int64)
+    local[members] = torch.arange(len(members))
+    li, lj = local[i], local[j]
+    keep = (li >= 0) & (lj >= 0)
+    W = torch.zeros(len(members), len(members), dtype=v.dtype)
+    W[li[keep], lj[keep]] = v[keep]
+    return W + W.T
+
+
 def _solve(
     n: int,
     edges: tuple[Tensor, Tensor, Tensor],
@@ -157,14 +170,7 @@ def _solve(
     generator: torch.Generator | None,
 ) -> tuple[Tensor, float]:
     """CLIPPER on the candidates `index` (sorted) from the sparse edges; (selected indices, density)."""
-    i, j, v = edges
-    local = torch.full((n,), -1, dtype=torch.int64)
-    local[index] = torch.arange(len(index))
-    li, lj = local[i], local[j]
-    keep = (li >= 0) & (lj >= 0)
-    M = torch.zeros(len(index), len(index), dtype=v.dtype)
-    M[li[keep], lj[keep]] = v[keep]
-    M = M + M.T
+    M = _dense_block(n, edges, index)
     M.diagonal().fill_(1.0)
     result = solve_clipper(M, generator=generator, cfg=cfg.clipper)
     return index[result.inliers[0]], float(result.score[0])
@@ -177,13 +183,7 @@ def _greedy_clique(n: int, edges: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor
     seed = int(torch.argmax(degree))
     nbrs = torch.unique(torch.cat([j[i == seed], i[j == seed]]))
     members = torch.cat([torch.tensor([seed]), nbrs])
-    local = torch.full((n,), -1, dtype=torch.int64)
-    local[members] = torch.arange(len(members))
-    li, lj = local[i], local[j]
-    keep = (li >= 0) & (lj >= 0)
-    W = torch.zeros(len(members), len(members), dtype=v.dtype)
-    W[li[keep], lj[keep]] = v[keep]
-    W = W + W.T
+    W = _dense_block(n, edges, members)
     clique = [0]
     allowed = W[0] > 0
     while allowed.any():
