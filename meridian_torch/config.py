@@ -88,7 +88,14 @@ class GroundObservationConfig(StrictModel):
         description="back-project every n-th pixel in both axes; None: the reference's 4 scaled to the image "
         "width and rounded down (4 at 1280 px, 2 at 640 px, 1 at 480 px)",
     )
-    max_depth_m: float = Field(default=10.0, gt=0, description="[paper] depth cutoff; farther pixels are ignored")
+    max_depth_m: float = Field(
+        default=15.0,
+        gt=0,
+        description="depth cutoff; farther pixels are ignored (paper 10 m, a RealSense-class range). 15 m: within "
+        "10 m a road-following camera sees almost only the road and its borders; on the demo world 15 m gave "
+        "2-9 points and 70-190 lines per submap instead of 0-2 and 30-80, and true-patch registration rose from "
+        "41 to 58 % (known rotation, top-25) and 23 to 33 % (unknown). Set it to your sensor's trustworthy range",
+    )
     voxel_m: float = Field(default=0.1, gt=0, description="voxel downsampling of each observation")
     outlier_neighbours: int = Field(default=10, ge=1, description="statistical outlier removal: neighbours")
     outlier_std_ratio: float = Field(
@@ -104,7 +111,8 @@ class GroundObservationConfig(StrictModel):
         default=0.15, ge=0, le=0.5, description="cap of the band measured from the image border, same unit"
     )
     occlusion_max_depth_m: float = Field(
-        default=9.0, gt=0, description="points deeper than this (up to max_depth_m) are occluded (depth-cutoff band)"
+        default=14.0, gt=0, description="points deeper than this (up to max_depth_m) are occluded (depth-cutoff band; "
+        "paper 9 m with its 10 m cutoff)"
     )
     occluded_clearance_m: float = Field(
         default=0.1, ge=0, description="real points closer than this to an occluded point are deleted"

@@ -27,7 +27,7 @@ def test_stack_similarity_is_max_cosine_over_valid_frames() -> None:
 
 def test_global_mode_takes_the_top_k_and_flags_missing() -> None:
     sim = torch.tensor([[0.1, 0.9, 0.5, float("-inf")], [float("-inf")] * 4])
-    idx, valid = select_patches(PlaceRecognitionConfig(k_global=3), 2, 4, similarity=sim)
+    idx, valid = select_patches(PlaceRecognitionConfig(mode="global", k_global=3), 2, 4, similarity=sim)
     assert idx[0].tolist() == [1, 2, 0] and valid[0].all()
     assert not valid[1].any()
 
@@ -35,6 +35,17 @@ def test_global_mode_takes_the_top_k_and_flags_missing() -> None:
 def test_exhaustive_mode_lists_every_patch() -> None:
     idx, valid = select_patches(PlaceRecognitionConfig(mode="exhaustive"), 3, 7)
     assert idx.shape == (3, 7) and valid.all() and idx[2].tolist() == list(range(7))
+
+
+def test_auto_mode_is_exhaustive_on_small_maps_and_global_on_large_ones() -> None:
+    cfg = PlaceRecognitionConfig(mode="auto", k_global=2, exhaustive_max_patches=4)
+    sim = torch.tensor([[0.1, 0.9, 0.5, 0.3, 0.2]])
+    idx, valid = select_patches(cfg, 1, 4, similarity=sim[:, :4])
+    assert idx[0].tolist() == [0, 1, 2, 3] and valid.all()
+    idx, valid = select_patches(cfg, 1, 5, similarity=sim)
+    assert idx[0].tolist() == [1, 2] and valid.all()
+    with pytest.raises(ValueError, match="similarity"):
+        select_patches(cfg, 1, 5)
 
 
 @settings(max_examples=30, deadline=None)

@@ -42,7 +42,7 @@ from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.match import match_submap
-from meridian_torch.matching.place_recognition import select_patches, stack_similarity
+from meridian_torch.matching.place_recognition import resolved_mode, select_patches, stack_similarity
 from meridian_torch.types import GroundSubmap, PrimitiveBatch, PrimitiveSet
 
 __all__ = ["LocalizationResult", "Localizer", "LocalizerEvent", "Matcher", "lift_se2", "localize_offline"]
@@ -169,7 +169,7 @@ class Localizer:
     ) -> None:
         if cfg.matching.place_recognition.mode == "near":
             raise ConfigError(
-                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'global' or 'exhaustive' "
+                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'global' or 'exhaustive' "
                 "for localization (the localizer switches to 'near' by itself after the fix)"
             )
         frame_times = np.asarray(frame_times, dtype=np.float64)
@@ -233,7 +233,7 @@ class Localizer:
         pr = self.cfg.matching.place_recognition
         n_patches = len(self.aerial_map)
         similarity = None
-        if pr.mode == "global":
+        if resolved_mode(pr, n_patches) == "global":
             frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
             valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
             similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)

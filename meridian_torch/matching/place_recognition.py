@@ -3,6 +3,7 @@
 - global: the top-K patches by the maximum cosine similarity between the patch descriptor and
   any descriptor of the submap's frame stack (the paper's place recognition);
 - exhaustive: every patch (small maps, where matching all is affordable);
+- auto: exhaustive up to `exhaustive_max_patches` patches, else global;
 - near: the patches whose squares overlap most with a disk around a predicted position
   (after a global fix).
 """
@@ -13,7 +14,7 @@ import torch
 
 from meridian_torch.matching.config import PlaceRecognitionConfig
 
-__all__ = ["stack_similarity", "select_patches", "disk_overlap"]
+__all__ = ["stack_similarity", "select_patches", "disk_overlap", "resolved_mode"]
 
 _DISK_SAMPLES = 32  # per axis: the disk's overlap with a box is estimated on a 32 x 32 grid
 
@@ -45,6 +46,13 @@ def disk_overlap(centres_xy: torch.Tensor, radius_m: float, bounds_xy: torch.Ten
     return in_box.to(pts.dtype).mean(dim=1)
 
 
+def resolved_mode(cfg: PlaceRecognitionConfig, n_patches: int) -> str:
+    """The mode `cfg` means on a map of `n_patches` patches ('auto' becomes 'exhaustive' or 'global')."""
+    if cfg.mode != "auto":
+        return cfg.mode
+    return "exhaustive" if n_patches <= cfg.exhaustive_max_patches else "global"
+
+
 def select_patches(
     cfg: PlaceRecognitionConfig,
     n_submaps: int,
@@ -57,13 +65,15 @@ def select_patches(
     """Patch indices (S, K) and their validity (S, K) for S = n_submaps submaps, by `cfg.mode`.
 
     'global' needs `similarity` (S, P) from `stack_similarity`; 'near' needs `predicted_xy` (S, 2)
-    and `patch_bounds_xy` (P, 4); 'exhaustive' needs only `n_patches`. Indices are sorted best
-    first; invalid entries (patches with -inf similarity or no overlap) have validity False.
+    and `patch_bounds_xy` (P, 4); 'exhaustive' needs only `n_patches`; 'auto' needs what the mode
+    it resolves to needs (`resolved_mode`). Indices are sorted best first; invalid entries (patches
+    with -inf similarity or no overlap) have validity False.
     """
-    if cfg.mode == "exhaustive":
+    mode = resolved_mode(cfg, n_patches)
+    if mode == "exhaustive":
         idx = torch.arange(n_patches).expand(n_submaps, n_patches)
         return idx, torch.ones_like(idx, dtype=torch.bool)
-    if cfg.mode == "global":
+    if mode == "global":
         if similarity is None:
             raise ValueError("place recognition mode 'global' needs the similarity matrix")
         k = min(cfg.k_global, similarity.shape[1])
