@@ -96,6 +96,12 @@ class PrimitiveBatch:
     def __len__(self) -> int:
         return int(self.points_xy.shape[0])
 
+    def select(self, index: slice | torch.Tensor) -> "PrimitiveBatch":
+        """The patches `index` (a slice or an index tensor) as a batch."""
+        if isinstance(index, torch.Tensor):
+            index = index.to(self.points_xy.device)
+        return PrimitiveBatch(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
     def unbatch(self, index: int) -> PrimitiveSet:
         """The index-th set without padding (segment ids are not kept in batches: -1)."""
         pv, lv = self.point_valid[index], self.line_valid[index]

@@ -120,11 +120,6 @@ def lift_se2(T_world_base_se2: np.ndarray, T_odom_base: np.ndarray) -> np.ndarra
     return C @ T_odom_base
 
 
-def _patch_subset(batch: PrimitiveBatch, index: torch.Tensor) -> PrimitiveBatch:
-    index = index.to(batch.points_xy.device)
-    return PrimitiveBatch(**{name: getattr(batch, name)[index] for name in batch.__dataclass_fields__})
-
-
 @dataclass
 class _Update:
     available_time: float
@@ -219,7 +214,7 @@ class Localizer:
         if len(patches) == 0:
             return LoopClosureCandidates.empty()
         start = time.perf_counter()
-        aerial = _patch_subset(self.aerial_map.primitives, patches)
+        aerial = self.aerial_map.primitives.select(patches)
         ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
         hyps = self._matcher(
             ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator

@@ -1,7 +1,8 @@
 """Public matching entry point: one ground submap against P aerial patches, all at once.
 
 associations -> affinity -> inlier sets (Langevin particles, or CLIPPER) -> batched SE(2)
-registration of every set -> greedy clustering into L weighted hypotheses T_world_odom.
+registration of every set -> greedy clustering into weighted hypotheses T_world_odom ->
+geometric verification (mass x alignment of the whole submap) -> the L best.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.config import MatchConfig
 from meridian_torch.matching.hypotheses import Hypotheses, cluster_hypotheses
 from meridian_torch.matching.particles import InlierSets, patch_seeds, sample_inlier_sets
+from meridian_torch.matching.verification import reweight_hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet, stack_primitive_sets
 
 __all__ = ["match_submap", "match_arrays"]
@@ -43,10 +45,6 @@ def _slice_associations(assoc: Associations, part: slice) -> Associations:
     return dataclasses.replace(
         assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part], cosine=assoc.cosine[part]
     )
-
-
-def _slice_batch(batch: PrimitiveBatch, part: slice) -> PrimitiveBatch:
-    return PrimitiveBatch(**{f.name: getattr(batch, f.name)[part] for f in dataclasses.fields(batch)})
 
 
 def _concat_sets(chunks: list[InlierSets]) -> InlierSets:
@@ -91,7 +89,8 @@ def match_submap(
             identical output.
 
     Returns:
-        `Hypotheses` with (P, L) entries, L = `config.hypotheses_per_patch`, heaviest first.
+        `Hypotheses` with (P, L) entries, L = `config.hypotheses_per_patch`, most probable first
+        (particle mass x alignment with `config.verification`, mass alone without).
     """
     cfg = config or MatchConfig()
     device, dtype = aerial.points_xy.device, aerial.points_xy.dtype
@@ -113,23 +112,27 @@ def match_submap(
         chunks = []
         for c0 in range(0, len(aerial), cfg.patch_chunk):
             part = slice(c0, c0 + cfg.patch_chunk)
-            assoc_c, aerial_c = _slice_associations(assoc, part), _slice_batch(aerial, part)
+            assoc_c, aerial_c = _slice_associations(assoc, part), aerial.select(part)
             M = affinity_entries(
                 ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
             )
             chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
             del M
         sets = _concat_sets(chunks)
-    return cluster_hypotheses(
+    verify = cfg.verification
+    hypotheses = cluster_hypotheses(
         sets,
         assoc,
         ground,
         aerial,
-        n_hypotheses=cfg.hypotheses_per_patch,
+        n_hypotheses=max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch,
         translation_m=cfg.cluster_translation_m,
         rotation_deg=cfg.cluster_rotation_deg,
         registration=cfg.registration,
     )
+    if not verify.enabled:
+        return hypotheses
+    return reweight_hypotheses(hypotheses, ground, aerial, verify, cfg.hypotheses_per_patch)
 
 
 def _array(x: object, name: str, tail: tuple[int, ...], dtype: torch.dtype) -> Tensor:
@@ -229,7 +232,7 @@ def match_arrays(
 
     Returns:
         `Hypotheses` with P rows: `T_world_odom[p, l]` (3 x 3 homogeneous SE(2)) maps odom x-y
-        into world x-y for patch p, hypotheses heaviest first; `probability`, `valid` and
+        into world x-y for patch p, most probable first; `probability`, `valid` and
         `association_mask` as documented there. Patches without usable associations get only
         invalid rows (valid False, probability 0).
 

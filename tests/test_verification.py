@@ -1,0 +1,135 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from meridian_torch.geometry.se2 import se2_matrix
+from meridian_torch.matching.config import VerificationConfig
+from meridian_torch.matching.hypotheses import Hypotheses
+from meridian_torch.matching.verification import alignment_score, reweight_hypotheses
+from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
+
+
+def _set(points: torch.Tensor, lines: torch.Tensor) -> PrimitiveSet:
+    d = 4
+    return PrimitiveSet(
+        points_xy=points,
+        point_descriptors=torch.nn.functional.normalize(torch.ones(len(points), d, dtype=points.dtype), dim=-1),
+        point_segment_ids=torch.arange(len(points)),
+        line_endpoints=lines,
+        line_kinds=torch.full((len(lines),), int(LineKind.SEGMENT)),
+        line_descriptors=torch.nn.functional.normalize(torch.ones(len(lines), d, dtype=lines.dtype), dim=-1),
+        line_segment_ids=torch.arange(len(lines)),
+    )
+
+
+def _transform(T: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    return xy @ T[:2, :2].T + T[:2, 2]
+
+
+def _random_set(gen: torch.Generator, n_points: int, n_lines: int) -> PrimitiveSet:
+    points = torch.rand(n_points, 2, generator=gen, dtype=torch.float64) * 40
+    start = torch.rand(n_lines, 2, generator=gen, dtype=torch.float64) * 40
+    angle = torch.rand(n_lines, generator=gen, dtype=torch.float64) * 2 * math.pi
+    length = 2 + torch.rand(n_lines, generator=gen, dtype=torch.float64) * 10
+    end = start + length[:, None] * torch.stack([angle.cos(), angle.sin()], -1)
+    return _set(points, torch.stack([start, end], 1))
+
+
+def _loop_alignment(T: torch.Tensor, ground: PrimitiveSet, aerial: PrimitiveSet, cfg: VerificationConfig) -> float:
+    """One pose, plain loops: the definition in the module docstring."""
+    total = 0.0
+    for (a, b) in ground.line_endpoints:
+        a_w, b_w = _transform(T, a[None])[0], _transform(T, b[None])[0]
+        mid, u = (a_w + b_w) / 2, (b_w - a_w) / (b_w - a_w).norm()
+        for (c, d) in aerial.line_endpoints:
+            v = (d - c) / (d - c).norm()
+            t = float(((mid - c) @ (d - c)) / ((d - c) @ (d - c)))
+            closest = c + min(max(t, 0.0), 1.0) * (d - c)
+            if abs(float(u @ v)) >= math.cos(math.radians(cfg.line_angle_deg)) and float((mid - closest).norm()) <= cfg.line_distance_m:
+                total += float((b - a).norm())
+                break
+    for p in ground.points_xy:
+        p_w = _transform(T, p[None])[0]
+        if any(float((p_w - q).norm()) <= cfg.point_distance_m for q in aerial.points_xy):
+            total += cfg.point_weight_m
+    return total
+
+
+def test_alignment_score_equals_a_per_pose_loop_with_padding() -> None:
+    gen = torch.Generator().manual_seed(3)
+    cfg = VerificationConfig(line_distance_m=3.0, line_angle_deg=30.0, point_distance_m=4.0)
+    ground = _random_set(gen, 6, 9)
+    patches = [_random_set(gen, n_p, n_l) for n_p, n_l in [(8, 15), (2, 4), (0, 7)]]  # unequal sizes: padding
+    # Poses near the identity, so that some primitives do land on others.
+    theta = (torch.rand(3, 5, generator=gen, dtype=torch.float64) - 0.5) * 0.3
+    t = (torch.rand(3, 5, 2, generator=gen, dtype=torch.float64) - 0.5) * 4
+    T = se2_matrix(theta, t)
+    score = alignment_score(T, ground, stack_primitive_sets(patches), cfg)
+    expected = torch.tensor([[_loop_alignment(T[p, h], ground, patches[p], cfg) for h in range(5)] for p in range(3)],
+                            dtype=torch.float64)
+    assert expected.max() > 0  # the case exercises both outcomes
+    torch.testing.assert_close(score, expected)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-math.pi, math.pi), st.floats(-100, 100), st.floats(-100, 100))
+def test_true_pose_aligns_the_whole_submap_and_a_shift_does_not(yaw: float, tx: float, ty: float) -> None:
+    cfg = VerificationConfig()
+    ground = _set(torch.tensor([[0.0, 0.0], [12.0, 3.0]], dtype=torch.float64),
+                  torch.tensor([[[0.0, 5.0], [10.0, 5.0]], [[-4.0, -2.0], [-4.0, 8.0]]], dtype=torch.float64))
+    T = se2_matrix(torch.tensor(yaw, dtype=torch.float64), torch.tensor([tx, ty], dtype=torch.float64))
+    aerial = _set(_transform(T, ground.points_xy), _transform(T, ground.line_endpoints.reshape(-1, 2)).reshape(-1, 2, 2))
+    shift = se2_matrix(torch.tensor(0.0, dtype=torch.float64), torch.tensor([3.0, 3.0], dtype=torch.float64))
+    poses = torch.stack([T, shift @ T])[None]  # (1, 2, 3, 3)
+    score = alignment_score(poses, ground, stack_primitive_sets([aerial]), cfg)
+    assert score[0, 0].item() == pytest.approx(10.0 + 10.0 + 2 * cfg.point_weight_m)
+    assert score[0, 1].item() < score[0, 0].item()
+
+
+def _hypotheses(T: torch.Tensor, probability: torch.Tensor, valid: torch.Tensor) -> Hypotheses:
+    P, H = probability.shape
+    return Hypotheses(
+        T_world_odom=T,
+        theta=torch.atan2(T[..., 1, 0], T[..., 0, 0]),
+        t=T[..., :2, 2],
+        probability=probability,
+        association_mask=torch.zeros(P, H, 3, dtype=torch.bool),
+        objective=torch.arange(P * H, dtype=T.dtype).reshape(P, H),
+        valid=valid,
+        pairs=torch.zeros(P, 3, 2, dtype=torch.int64),
+    )
+
+
+def test_reweighting_ranks_by_mass_times_alignment_and_keeps_the_mass() -> None:
+    cfg = VerificationConfig()
+    ground = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 0.0], [10.0, 0.0]]], dtype=torch.float64))
+    aerial = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 20.0], [10.0, 20.0]]], dtype=torch.float64))
+    # Three poses: the heaviest puts the line nowhere, the lighter two on the aerial line.
+    ty = torch.tensor([[0.0, 20.0, 20.5, 0.0]], dtype=torch.float64)
+    T = se2_matrix(torch.zeros(1, 4, dtype=torch.float64), torch.stack([torch.zeros_like(ty), ty], -1))
+    mass = torch.tensor([[0.5, 0.2, 0.1, 0.0]], dtype=torch.float64)
+    valid = torch.tensor([[True, True, True, False]])
+    out = reweight_hypotheses(_hypotheses(T, mass, valid), ground, stack_primitive_sets([aerial]), cfg, 3)
+    assert out.t[0, :, 1].tolist() == [20.0, 20.5, 0.0]
+    assert out.probability.sum().item() == pytest.approx(0.8)  # total mass kept
+    assert out.probability[0, 0].item() == pytest.approx(0.8 * 2 / 3)
+    assert out.probability[0, 2].item() == 0.0
+    assert out.objective[0].tolist() == [1.0, 2.0, 0.0]  # every field follows the new order
+
+
+def test_reweighting_keeps_masses_when_nothing_aligns_and_checks_the_count() -> None:
+    cfg = VerificationConfig()
+    ground = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 0.0], [10.0, 0.0]]], dtype=torch.float64))
+    aerial = _set(torch.tensor([[500.0, 500.0]], dtype=torch.float64), torch.zeros(0, 2, 2, dtype=torch.float64))
+    T = se2_matrix(torch.zeros(1, 2, dtype=torch.float64), torch.zeros(1, 2, 2, dtype=torch.float64))
+    mass = torch.tensor([[0.3, 0.6]], dtype=torch.float64)
+    h = _hypotheses(T, mass, torch.ones(1, 2, dtype=torch.bool))
+    out = reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 2)
+    assert out.probability[0].tolist() == [0.6, 0.3]
+    with pytest.raises(ValueError, match="n_hypotheses"):
+        reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 3)
