@@ -2,10 +2,12 @@
 the "without path-length scaling" ablation (paper Table V) and outdated aerial imagery.
 
 Worlds come from configs/kitti00.yaml (real KITTI 00 map, aligned real ground truth, real ORB-SLAM2
-odometry), kitti02.yaml and kitti09.yaml (real maps and ground truth, simulated drifting odometry).
+odometry), kitti02.yaml and kitti09.yaml (real maps and ground truth, simulated drifting odometry);
+`demo` is the built-in demo world (configs/demo.yaml), small enough to run every variant quickly.
 Each sequence is rendered once into --work-dir and its aerial map built once; every variant then
 runs the online pipeline (ground mapping, incremental localization, final optimization) and is
-evaluated against the ground truth. Needs the team's shared data folder beside the repository.
+evaluated against the ground truth. The KITTI worlds need the team's shared data folder beside the
+repository.
 
 Variants:
   default      the configuration as shipped
@@ -14,7 +16,7 @@ Variants:
                colours, some objects removed or added) while the robot sees today's world
 
 Usage:
-  python scripts/exp_localization.py --work-dir runs/exp [--sequences 00 09] \
+  python scripts/exp_localization.py --work-dir runs/exp [--sequences demo 00 09] \
       [--variants default no-scaling outdated] [--max-frames 600] [--set key=value ...]
 """
 
@@ -30,6 +32,7 @@ from tqdm import tqdm
 
 from meridian_torch.config import CONFIG_DIR, MeridianConfig, config_key, load_config
 from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.io.map_file import AerialMap, load_aerial_map
 from meridian_torch.io.ortho import write_orthophoto
 from meridian_torch.io.results import write_outputs
@@ -41,6 +44,7 @@ from meridian_torch.sim.simulate import render_world_orthophoto, simulate_sequen
 
 # Paper Table I (KITTI ATE, m): Meridian incremental / final; Table V is on the Camp data only.
 PAPER = {"00": (2.0, 1.5), "02": (3.3, 4.2), "09": (2.4, 2.1)}
+CONFIGS = {"demo": "demo.yaml", "00": "kitti00.yaml", "02": "kitti02.yaml", "09": "kitti09.yaml"}
 VARIANTS = ("default", "no-scaling", "outdated")
 
 
@@ -131,7 +135,7 @@ def table(rows: list[dict]) -> str:
         m = r["metrics"]
         inc = (m.get("incremental") or {}).get("ate_rmse_m")
         fin = (m.get("final") or {}).get("ate_rmse_m")
-        paper = PAPER.get(r["sequence"][-2:])
+        paper = PAPER.get(r["sequence"][-2:]) if r["sequence"].startswith("kitti") else None
         paper_s = f"{paper[0]} / {paper[1]}" if paper and r["variant"] == "default" else ""
         fraction = m.get("fraction_localized")
         lines.append(
@@ -146,7 +150,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--work-dir", type=Path, required=True, help="where worlds, maps and results are kept")
-    parser.add_argument("--sequences", nargs="+", default=["00", "02", "09"], choices=["00", "02", "09"])
+    parser.add_argument("--sequences", nargs="+", default=["00", "02", "09"], choices=list(CONFIGS))
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     parser.add_argument("--max-frames", type=int, default=None, help="only the first N frames of each sequence")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
@@ -157,7 +161,7 @@ def main() -> int:
         overrides = list(args.overrides)
         if args.max_frames:
             overrides.append(f"sim.trajectory.max_frames={args.max_frames}")
-        cfg = load_config(CONFIG_DIR / f"kitti{seq}.yaml", overrides)
+        cfg = load_config(CONFIG_DIR / CONFIGS[seq], overrides)
         started = time.perf_counter()
         folder = sequence_folder(cfg, args.work_dir)
         for variant in args.variants:
@@ -168,7 +172,7 @@ def main() -> int:
     print(table(rows))
     out = args.work_dir / "results" / "exp_localization.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(rows, indent=2, default=float) + "\n")
+    write_text_atomic(out, json.dumps(rows, indent=2, default=float) + "\n")
     print(f"\nwrote {out}")
     return 0
 
