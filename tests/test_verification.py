@@ -133,3 +133,17 @@ def test_reweighting_keeps_masses_when_nothing_aligns_and_checks_the_count() -> 
     assert out.probability[0].tolist() == [0.6, 0.3]
     with pytest.raises(ValueError, match="n_hypotheses"):
         reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 3)
+
+
+def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
+    gen = torch.Generator().manual_seed(5)
+    ground = _random_set(gen, 4, 6)
+    aerial = stack_primitive_sets([_random_set(gen, 5, 8) for _ in range(3)])
+    T = se2_matrix((torch.rand(3, 6, generator=gen, dtype=torch.float64) - 0.5) * 0.2,
+                   (torch.rand(3, 6, 2, generator=gen, dtype=torch.float64) - 0.5) * 6)
+    mass = torch.rand(3, 6, generator=gen, dtype=torch.float64) / 6
+    h = _hypotheses(T, mass, torch.rand(3, 6, generator=gen) > 0.2)
+    one_patch = reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=1), 4)
+    all_patches = reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0), 4)
+    torch.testing.assert_close(one_patch.probability, all_patches.probability)
+    torch.testing.assert_close(one_patch.T_world_odom, all_patches.T_world_odom)

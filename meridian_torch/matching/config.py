@@ -284,7 +284,12 @@ class VerificationConfig(StrictModel):
     line_angle_deg: float = Field(default=10.0, gt=0, le=90, description="... and its direction within this angle")
     point_distance_m: float = Field(default=2.0, gt=0, description="a ground point within this of an aerial point")
     point_weight_m: float = Field(default=5.0, ge=0, description="a matched point counts as this much line length")
-    patch_chunk: int = Field(default=8, ge=1, description="patches verified together (bounds memory)")
+    chunk_pairs: int = Field(
+        default=4_000_000,
+        ge=1,
+        description="(pose, ground primitive, aerial primitive) triples evaluated at once; bounds memory to "
+        "about 100 bytes per triple",
+    )
 
 
 __all__ += ["VerificationConfig"]

@@ -98,13 +98,16 @@ def reweight_hypotheses(
 
     Probabilities become mass x alignment rescaled to the patch's total mass over the H inputs
     (so they still sum to <= 1); a patch whose hypotheses all align nowhere keeps its masses.
-    Alignment is computed in chunks of `config.patch_chunk` patches (memory).
+    Alignment is computed a few patches at a time, about `config.chunk_pairs` (pose, ground
+    primitive, aerial primitive) triples per chunk (memory).
     """
     h = hypotheses
     if n_hypotheses > h.valid.shape[1]:
         raise ValueError(f"n_hypotheses = {n_hypotheses} > the {h.valid.shape[1]} hypotheses given per patch")
     mass = torch.where(h.valid, h.probability, 0.0)
-    chunk = config.patch_chunk
+    n_ground = max(len(ground.line_endpoints), len(ground.points_xy), 1)
+    n_aerial = max(aerial.line_endpoints.shape[1], aerial.points_xy.shape[1], 1)
+    chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * n_aerial))
     score = torch.cat(
         [
             alignment_score(h.T_world_odom[c : c + chunk], ground, aerial.select(slice(c, c + chunk)), config)
