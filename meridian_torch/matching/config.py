@@ -285,10 +285,10 @@ class VerificationConfig(StrictModel):
     point_distance_m: float = Field(default=2.0, gt=0, description="a ground point within this of an aerial point")
     point_weight_m: float = Field(default=5.0, ge=0, description="a matched point counts as this much line length")
     chunk_pairs: int = Field(
-        default=4_000_000,
+        default=8_000_000,
         ge=1,
         description="(pose, ground primitive, aerial primitive) triples evaluated at once; bounds memory to "
-        "about 100 bytes per triple",
+        "about 10 bytes per triple",
     )
 
 

@@ -26,11 +26,11 @@ from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 __all__ = ["alignment_score", "reweight_hypotheses"]
 
 
-def _segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """Distance from points p (..., 2) to segments a-b (..., 2), broadcast."""
+def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """Squared distance from points p (K, 2) to segments a-b (K, 2)."""
     ab = b - a
     t = ((p - a) * ab).sum(-1) / ab.square().sum(-1).clamp_min(1e-12)
-    return (a + t.clamp(0.0, 1.0)[..., None] * ab - p).norm(dim=-1)
+    return (a + t.clamp(0.0, 1.0)[:, None] * ab - p).square().sum(-1)
 
 
 def alignment_score(
@@ -59,13 +59,18 @@ def alignment_score(
         ad = A[:, :, 1] - A[:, :, 0]
         au = ad / ad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         parallel = torch.einsum("phnk,pmk->phnm", u_world, au).abs() >= cos_min
-        near = _segment_distance(mid[:, :, :, None], A[:, None, None, :, 0], A[:, None, None, :, 1])
-        on_line = parallel & (near <= config.line_distance_m) & aerial.line_valid[:, None, None, :]
-        score = score + (on_line.any(-1).to(dtype) * length).sum(-1)
+        parallel &= aerial.line_valid[:, None, None, :]
+        # Distances only for the near-parallel triples (a small share): index them instead of
+        # broadcasting (P, H, N, M, 2) temporaries.
+        p_i, h_i, n_i, m_i = parallel.nonzero(as_tuple=True)
+        near = _squared_segment_distance(mid[p_i, h_i, n_i], A[p_i, m_i, 0], A[p_i, m_i, 1]) <= config.line_distance_m**2
+        on_line = torch.zeros(parallel.shape[:3], dtype=torch.bool, device=device)
+        on_line[p_i[near], h_i[near], n_i[near]] = True
+        score = score + (on_line.to(dtype) * length).sum(-1)
     if len(ground.points_xy) and aerial.points_xy.shape[1]:
         p = torch.einsum("phij,nj->phni", R, ground.points_xy) + t[:, :, None]  # (P, H, N, 2)
-        dist = (p[:, :, :, None] - aerial.points_xy.to(dtype)[:, None, None]).norm(dim=-1)
-        near = (dist <= config.point_distance_m) & aerial.point_valid[:, None, None, :]
+        dist2 = (p[:, :, :, None] - aerial.points_xy.to(dtype)[:, None, None]).square().sum(-1)
+        near = (dist2 <= config.point_distance_m**2) & aerial.point_valid[:, None, None, :]
         score = score + config.point_weight_m * near.any(-1).to(dtype).sum(-1)
     return score
 
