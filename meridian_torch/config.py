@@ -239,7 +239,13 @@ class BackendConfig(StrictModel):
     prior_trans_sigma_m: float = Field(default=2.0, gt=0, description="loop-closure prior sigma x, y (reference)")
     prior_rot_sigma_deg: float = Field(default=5.0, gt=0, description="loop-closure prior yaw sigma (reference)")
     attempt_min_inliers: int = Field(
-        default=1, ge=1, description="gate 1: pre-fix inliers needed before a fix attempt (re-match of all submaps)"
+        default=3,
+        ge=1,
+        description="gate 1: pre-fix inliers needed before a fix attempt (re-match of all submaps); reference 1. "
+        "An attempt re-matches near the rough trajectory of these inliers, so it tends to confirm them: on the "
+        "KITTI 00 world (300 frames, top-25 place recognition) two chance-consistent candidates seeded attempts "
+        "until one committed a wrong fix (online ATE 464 m) with 1; with 3 no attempt ran. The demo world "
+        "had 5 pre-fix inliers by its first possible attempt, so its fix is unchanged",
     )
     fix_min_inliers: int = Field(default=6, ge=1, description="[paper] global fix: >= 6 inlier loop closures")
     fix_min_inlier_fraction: float = Field(

@@ -140,7 +140,7 @@ def table(rows: list[dict]) -> str:
         fraction = m.get("fraction_localized")
         lines.append(
             f"| {r['sequence']} | {r['variant']} | {r['frames']} | {r['submaps']} | {_fmt(inc)} | {_fmt(fin)} "
-            f"| {'-' if fraction is None else f'{100 * fraction:.0f} %'} | {_fmt(m.get('first_fix_distance_m'))} "
+            f"| {'-' if fraction is None else f'{100 * fraction:.0f} %'} | {_fmt(m.get('distance_to_first_fix_m'))} "
             f"| {paper_s} | {r['real_time_factor']:.2f} |"
         )
     return "\n".join(lines)

@@ -359,12 +359,23 @@ def test_report_is_written(run, tmp_path) -> None:
 def test_failed_attempts_rematch_only_new_submaps_while_the_inliers_stay() -> None:
     world = World(seed=4, n_frames=200)
     world.bad_submaps = set(range(10))  # nothing consistent: the pre-fix inlier set never changes
-    loc = Localizer(make_map(), _cfg(final_rematch=False), world.odometry, world.times, matcher=world.matcher)
+    cfg = _cfg(final_rematch=False, attempt_min_inliers=1)
+    loc = Localizer(make_map(), cfg, world.odometry, world.times, matcher=world.matcher)
     events = [loc.add_submap(s) for s in world.submaps()]
     attempts = [e.submap_index for e in events if e.attempted]
     assert attempts == list(range(5, 10)) and not any(e.fix_committed for e in events)
     # The first attempt re-matches submaps 0-5, every later one only the newest submap.
     assert sum(1 for _, prior in world.calls if prior) == len(events)
+
+
+def test_no_attempt_without_enough_pre_fix_inliers() -> None:
+    world = World(seed=4, n_frames=200)
+    world.bad_submaps = set(range(10))
+    loc = Localizer(make_map(), _cfg(final_rematch=False, attempt_min_inliers=3), world.odometry, world.times,
+                    matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    assert max(e.n_inliers for e in events) < 3
+    assert not any(e.attempted for e in events) and not any(prior for _, prior in world.calls)
 
 
 def test_cached_pool_graph_matches_a_fresh_one(run) -> None:
