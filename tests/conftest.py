@@ -1,4 +1,8 @@
-"""Shared fixtures: `--runslow` gates end-to-end tests; `shared_data` locates ../shared/data."""
+"""Shared fixtures: `--runslow` gates end-to-end tests; `shared_data` locates ../shared/data.
+
+Property tests draw the same examples on every run (hypothesis `derandomize`), so CI results
+are reproducible; `--hypothesis-profile=default --hypothesis-seed=N` explores other examples.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,10 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("reproducible", derandomize=True)
+settings.load_profile("reproducible")
 
 # As in the CLI: idle OpenMP threads sleep rather than spin (set before torch is imported).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

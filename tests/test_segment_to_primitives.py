@@ -57,13 +57,18 @@ def lengths(endpoints: torch.Tensor) -> np.ndarray:
     return np.linalg.norm(e[:, 1] - e[:, 0], axis=1)
 
 
+# Line ends may miss a corner by one outline-grid cell diagonal: at some rotations the 0.25 m grid
+# cuts a corner by one short edge too oblique to fuse (hypothesis found 0.350 m; the diagonal is 0.354 m).
+CORNER_CUT_M = math.sqrt(2.0) * CFG.alpha_grid_m
+
+
 def assert_matches_side(
-    line: np.ndarray, a: np.ndarray, b: np.ndarray, tol_m: float = 0.3, tol_deg: float = 2.0, tol_end_m: float = 0.35
+    line: np.ndarray, a: np.ndarray, b: np.ndarray, tol_m: float = 0.3, tol_deg: float = 2.0,
+    tol_end_m: float = CORNER_CUT_M + 0.02,
 ):
     """Line within tol_m of side a-b's line, within tol_deg of its direction, ending within tol_end_m of a and b.
 
-    The end tolerance exceeds tol_m slightly: at some rotations the 0.25 m outline grid cuts a
-    corner by one short edge that is too oblique to fuse (measured up to 0.30 m).
+    The end tolerance exceeds tol_m slightly: see CORNER_CUT_M.
     """
     u = (b - a) / np.linalg.norm(b - a)
     t = np.sort((line - a) @ u)
@@ -98,6 +103,15 @@ def test_midsize_disc_is_a_circle_point():
     assert torch.allclose(out.points_xy[0], torch.tensor([1.0, 2.0]), atol=0.05)
 
 
+@pytest.mark.xfail(strict=True, reason="known defect: 0.35 m outline simplification can bend a 2 m end piece of a "
+                   "side 10.6 deg off it, past the 10 deg fusion angle, so the side splits (found by hypothesis)")
+def test_simplified_square_side_stays_one_line_near_axis_aligned():
+    angle, shift = 3.068359375, np.array([1.46875, 1.015625])
+    square = rotate(grid(0.0, 20.0, 0.0, 20.0) - 10.0, angle) + shift
+    out = convert([square], cfg=PrimitiveConfig())
+    assert (lengths(out.line_endpoints) > 18.5).sum() == 4
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     angle=st.floats(0.0, 2.0 * math.pi),
@@ -113,7 +127,8 @@ def test_large_square_becomes_its_four_sides(angle: float, tx: float, ty: float)
     default = PrimitiveConfig()
     tol = default.outline_simplify_m
     corner = 1.0 + 1.5 * tol / 0.35
-    cases = ((CFG, 1.0, 1.0, 0.3, 0.35), (default, corner, 4 * corner, 0.3 + tol, 0.35 + 4 * tol))
+    cut = CORNER_CUT_M + 0.02
+    cases = ((CFG, 1.0, 1.0, 0.3, cut), (default, corner, 4 * corner, 0.3 + tol, cut + 4 * tol))
     for cfg, corner_m, leftover_m, tol_m, tol_end_m in cases:
         out = convert([square], cfg=cfg)
         assert out.points_xy.shape[0] == 0
