@@ -43,7 +43,7 @@ from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.simulate import render_world_orthophoto, simulate_sequence
 
 # Paper Table I (KITTI ATE, m): Meridian incremental / final; Table V is on the Camp data only.
-PAPER = {"00": (2.0, 1.5), "02": (3.3, 4.2), "09": (2.4, 2.1)}
+PAPER = {"kitti00": (2.0, 1.5), "kitti02": (3.3, 4.2), "kitti09": (2.4, 2.1)}  # by sim.name
 CONFIGS = {"demo": "demo.yaml", "00": "kitti00.yaml", "02": "kitti02.yaml", "09": "kitti09.yaml"}
 VARIANTS = ("default", "no-scaling", "outdated")
 
@@ -135,7 +135,7 @@ def table(rows: list[dict]) -> str:
         m = r["metrics"]
         inc = (m.get("incremental") or {}).get("ate_rmse_m")
         fin = (m.get("final") or {}).get("ate_rmse_m")
-        paper = PAPER.get(r["sequence"][-2:]) if r["sequence"].startswith("kitti") else None
+        paper = PAPER.get(r["sequence"])
         paper_s = f"{paper[0]} / {paper[1]}" if paper and r["variant"] == "default" else ""
         fraction = m.get("fraction_localized")
         lines.append(
