@@ -268,6 +268,7 @@ def test_gate_fraction_blocks_the_fix() -> None:
     result = loc.finalize()
     assert not result.localized and result.incremental_trajectory is None
     assert np.all(np.isnan(result.T_world_base))
+    assert len(result.final_hypotheses) == 0  # no final pass
 
 
 def test_offline_mode_localizes() -> None:
@@ -338,6 +339,12 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     n_pre = len([e for e in events if e.submap_index <= result.fix_submap_index])
     assert reg["n_submaps"] == n_pre and reg["top25"] == pytest.approx((n_pre - 5) / n_pre)
     assert reg["top1"] < reg["top25"]
+    # The final pass re-matched every submap; its hypotheses are written and evaluated as a mode.
+    rows = run_out.hypotheses[run_out.hypotheses["mode"] == "final_rematch"]
+    assert len(rows) == len(result.final_hypotheses) > 0
+    assert set(rows["submap_index"].tolist()) == {e.submap_index for e in events}
+    final = metrics["registration_success"]["final_rematch"]["5m_5deg"]
+    assert final["n_submaps"] == len(events) and final["top25"] >= final["top1"] > 0
 
 
 def test_report_is_written(run, tmp_path) -> None:

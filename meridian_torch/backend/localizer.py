@@ -90,6 +90,7 @@ class LocalizationResult:
     fix_time: float | None  # time at which that fix became available
     submap_hypotheses: dict[int, LoopClosureCandidates]  # candidates of each submap's first matching
     submap_matching_mode: dict[int, str]  # how: "place_recognition" (before the fix) or "rotation_prior"
+    final_hypotheses: LoopClosureCandidates  # every submap re-matched in the final pass (empty without it)
     events: list[LocalizerEvent]
     timings: dict[str, float]  # seconds per stage: matching, consistency, pose_graph
 
@@ -429,6 +430,7 @@ class Localizer:
         n = len(self.frame_times)
         n_sub = len(self.submaps)
         best: tuple[PoseGraphSolution, LoopClosureCandidates] | None = None
+        fresh = LoopClosureCandidates.empty()
         sel = self._pool_inliers()
         if sel.count:
             inliers = self.pool.select(sel.inliers)
@@ -464,6 +466,7 @@ class Localizer:
             fix_time=self.fix_time,
             submap_hypotheses=dict(self.submap_hypotheses),
             submap_matching_mode=dict(self.submap_matching_mode),
+            final_hypotheses=fresh,
             events=list(self.events),
             timings=dict(self._timer.seconds),
         )

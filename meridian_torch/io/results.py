@@ -6,7 +6,9 @@ Files in the output folder:
 - `covariance.csv`: per frame of trajectory.tum, the marginal covariance of (x, y, yaw) in
   world-aligned axes (m^2, m rad, rad^2): `timestamp,xx,xy,xyaw,yy,yyaw,yawyaw`;
 - `loop_closures.csv`: the final inlier loop closures (measured T_world_base at the submap time);
-- `hypotheses.csv`: every submap's candidates from its first matching, for registration metrics;
+- `hypotheses.csv`: every submap's candidates from its first matching (mode `place_recognition`
+  before the fix, `rotation_prior` after it) and from the final pass's re-matching near the final
+  trajectory (mode `final_rematch`), for registration metrics;
 - `submaps.csv`: one row per processed submap (the localizer's events);
 - `localization.json`: summary (localized, fix, counts, per-stage seconds, frame count);
 - with a CRS: `trajectory_latlon.csv` (`timestamp,latitude,longitude`, WGS84) and
@@ -186,6 +188,7 @@ def write_outputs(
     for index in sorted(result.submap_hypotheses):
         mode = result.submap_matching_mode.get(index, "")
         hyp_rows += [[*row, mode] for row in _candidate_rows(result.submap_hypotheses[index])]
+    hyp_rows += [[*row, "final_rematch"] for row in _candidate_rows(result.final_hypotheses)]
     text(HYPOTHESES_CSV, _csv(_CANDIDATE_COLUMNS + ["mode"], hyp_rows))
     text(
         SUBMAPS_CSV,
