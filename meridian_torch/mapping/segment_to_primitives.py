@@ -433,11 +433,6 @@ def _merge_test(
     shortest = np.minimum(len_a, len_b)
     relaxed = np.minimum(theta * cfg.line_merge_short_m / shortest, SHORT_LINE_MAX_ANGLE)
     tol = np.where(shortest < cfg.line_merge_short_m, np.maximum(relaxed, theta), theta)
-    # Outline edges end on the alpha grid: a short edge's direction is only known to about
-    # asin(2 grid / length) (2 m at 0.25 m: 14.5 deg), so a fixed angle would split straight
-    # sides into a long line and a bent end piece. Not in the reference.
-    quantized = np.arcsin(np.minimum(2.0 * cfg.alpha_grid_m / shortest, 1.0))
-    tol = np.maximum(tol, np.minimum(quantized, SHORT_LINE_MAX_ANGLE))
     ok = sin < np.sin(tol)
     sub = np.flatnonzero(ok)
     ok[sub] = _distance_test(endpoints, direction, pairs[sub], sin[sub], cfg)
