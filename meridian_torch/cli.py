@@ -169,13 +169,16 @@ def build_map(
     out: Annotated[Path, typer.Option("--out", "-o", help="Map file to write (.mtm).")],
     config: ConfigOption = None,
     set_: SetOption = None,
+    workers: Annotated[int | None, typer.Option(
+        min=1, help="Worker processes (CPU; default aerial_map.workers). With the classical back ends use "
+                    "one per core: 2 processes build about 1.8x faster on 2 cores, the same map.")] = None,
 ) -> None:
     """Turn an orthophoto into an aerial map of point and line primitives (resumable).
 
     Finished patches are kept in OUT.parts/ while building: run the same command again after an
     interruption and it continues where it stopped.
     """
-    cfg = _load(config, set_)
+    cfg = _load(config, [*(set_ or []), *([f"aerial_map.workers={workers}"] if workers else [])])
     started = time.perf_counter()
     aerial_map = _build_map(cfg, ortho, out)
     prims = aerial_map.primitives

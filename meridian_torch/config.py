@@ -75,6 +75,12 @@ class AerialMapConfig(StrictModel):
         default=None, gt=0, description="segment each patch in square sub-crops of this size (None: whole patch)"
     )
     batch_size: int = Field(default=4, ge=1, description="patches segmented together")
+    workers: int = Field(
+        default=1,
+        ge=1,
+        description="worker processes describing patch batches (CPU only; same map). Classical back ends: set "
+        "it to the number of cores (measured in scripts/bench_aerial.py)",
+    )
 
 
 class GroundObservationConfig(StrictModel):

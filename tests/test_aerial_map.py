@@ -28,8 +28,8 @@ def ortho() -> Orthophoto:
     return Orthophoto(full.image[:n, :n].copy(), full.meters_per_pixel, full.origin_xy)
 
 
-def _mapper(batch_size: int) -> AerialMapper:
-    cfg = load_config(CONFIG_DIR / "tiny.yaml", [f"aerial_map.batch_size={batch_size}"])
+def _mapper(batch_size: int, workers: int = 1) -> AerialMapper:
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", [f"aerial_map.batch_size={batch_size}", f"aerial_map.workers={workers}"])
     return AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives)
 
 
@@ -60,7 +60,16 @@ def test_batched_equals_one_patch_at_a_time(ortho: Orthophoto, reference_map) ->
     _assert_same(build_aerial_map(ortho, _mapper(1)), reference_map)
 
 
-def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: Path) -> None:
+def test_worker_processes_build_the_same_map(ortho: Orthophoto, reference_map) -> None:
+    progress = []
+    built = build_aerial_map(ortho, _mapper(1, workers=2), progress=lambda d, t: progress.append(d))
+    _assert_same(built, reference_map)
+    assert progress == [0, 1, 2, 3, 4]  # every batch reported, in order
+    assert built.config == reference_map.config  # the worker count does not shape the map
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: Path, workers: int) -> None:
     work = tmp_path / "parts"
     calls = []
 
@@ -70,7 +79,7 @@ def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: P
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        build_aerial_map(ortho, _mapper(1), work_dir=work, progress=interrupt)
+        build_aerial_map(ortho, _mapper(1, workers), work_dir=work, progress=interrupt)
     assert len(list(work.glob("patch_*.npz"))) == 2
     progress = []
     resumed = build_aerial_map(ortho, _mapper(1), work_dir=work, progress=lambda d, t: progress.append(d))
@@ -78,15 +87,17 @@ def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: P
     _assert_same(resumed, reference_map)
 
 
-def test_build_and_show_map_cli(ortho: Orthophoto, tmp_path: Path) -> None:
+def test_build_and_show_map_cli(ortho: Orthophoto, reference_map, tmp_path: Path) -> None:
     write_orthophoto(tmp_path / "aerial", ortho)
     out = tmp_path / "map.mtm"
     runner = CliRunner()
-    result = runner.invoke(app, ["build-map", str(tmp_path / "aerial"), "--out", str(out), "-c", str(CONFIG_DIR / "tiny.yaml")])
+    result = runner.invoke(app, ["build-map", str(tmp_path / "aerial"), "--out", str(out),
+                                 "-c", str(CONFIG_DIR / "tiny.yaml"), "--workers", "2"])
     assert result.exit_code == 0, result.output
     assert out.is_file() and not (tmp_path / "map.mtm.parts").exists()
     loaded = load_aerial_map(out)
     assert loaded.image_size == ortho.size_px and len(loaded) == 4
+    _assert_same(loaded, reference_map)  # written and read back, from worker processes
     result = runner.invoke(app, ["show-map", str(out), "--out", str(tmp_path / "map.png")])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "map.png").stat().st_size > 10_000

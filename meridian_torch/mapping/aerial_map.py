@@ -3,14 +3,20 @@
 Resumable: every finished patch is stored in a work folder next to the output (one small file
 per patch, keyed by the orthophoto's and the config's hashes), so an interrupted build continues
 where it stopped; the folder is removed once the map file is written.
+
+Parallel: with `aerial_map.workers` > 1 the patch batches are described in that many worker
+processes (CPU only). Classical segmentation and segment -> primitive conversion are
+single-threaded Python/NumPy, so processes, not torch threads, are what use a second core.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,7 +43,7 @@ __all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dic
 def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig) -> dict[str, Any]:
     """The config blocks that shape an aerial map (stored in the map file and compared on load)."""
     return {
-        "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size"}),
+        "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size", "workers"}),
         "perception": {
             "aerial_segmenter": active_backend_dict(perception.aerial_segmenter),
             "descriptor": active_backend_dict(perception.descriptor),
@@ -150,6 +156,43 @@ def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor]:
     return PrimitiveSet(**arrays), global_desc
 
 
+_worker_state: tuple[Orthophoto, PatchGrid, AerialMapper] | None = None
+
+
+def _init_worker(ortho: Orthophoto, grid: PatchGrid, mapper: AerialMapper) -> None:
+    global _worker_state
+    torch.set_num_threads(1)  # the workers are the parallelism
+    _worker_state = (ortho, grid, mapper)
+
+
+def _describe_in_worker(indices: np.ndarray) -> list[tuple[PrimitiveSet, torch.Tensor]]:
+    assert _worker_state is not None, "worker not initialized"
+    ortho, grid, mapper = _worker_state
+    with torch.inference_mode():
+        return mapper.describe_patches(ortho, grid, indices)
+
+
+def _described_batches(
+    ortho: Orthophoto, grid: PatchGrid, mapper: AerialMapper, batches: list[np.ndarray]
+) -> Iterator[list[tuple[PrimitiveSet, torch.Tensor]]]:
+    """`mapper.describe_patches` of each batch, in order; in `aerial.workers` processes when > 1."""
+    workers = min(mapper.aerial.workers, len(batches))
+    if workers > 1 and mapper.device.type != "cpu":
+        raise ValueError(f"aerial_map.workers = {mapper.aerial.workers} needs the CPU device, got {mapper.device}")
+    if workers <= 1:
+        with torch.inference_mode():
+            for indices in batches:
+                yield mapper.describe_patches(ortho, grid, indices)
+        return
+    # spawn, not fork: a forked child of a process whose OpenMP pool is running can deadlock.
+    context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(ortho, grid, mapper))
+    try:
+        yield from pool.map(_describe_in_worker, batches)
+    finally:  # interrupted (Ctrl-C, an error while saving): drop the batches not started
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def build_aerial_map(
     ortho: Orthophoto,
     mapper: AerialMapper,
@@ -175,15 +218,14 @@ def build_aerial_map(
     if progress is not None:
         progress(len(results), len(grid))
     batch = mapper.aerial.batch_size
-    with torch.inference_mode():
-        for start in range(0, len(todo), batch):
-            indices = todo[start : start + batch]
-            for i, result in zip(indices, mapper.describe_patches(ortho, grid, indices)):
-                results[int(i)] = result
-                if work_dir is not None:
-                    _save_patch(work_dir / f"patch_{int(i):06d}.npz", *result)
-            if progress is not None:
-                progress(len(results), len(grid))
+    batches = [todo[start : start + batch] for start in range(0, len(todo), batch)]
+    for indices, described in zip(batches, _described_batches(ortho, grid, mapper, batches)):
+        for i, result in zip(indices, described):
+            results[int(i)] = result
+            if work_dir is not None:
+                _save_patch(work_dir / f"patch_{int(i):06d}.npz", *result)
+        if progress is not None:
+            progress(len(results), len(grid))
     ordered = [results[i] for i in range(len(grid))]
     return AerialMap(
         patches=grid,
