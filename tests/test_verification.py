@@ -50,18 +50,17 @@ def _loop_alignment(T: torch.Tensor, ground: PrimitiveSet, aerial: PrimitiveSet,
     for (a, b) in pieces:
         a_w, b_w = _transform(T, a[None])[0], _transform(T, b[None])[0]
         mid, u = (a_w + b_w) / 2, (b_w - a_w) / (b_w - a_w).norm()
-        best = 0.0  # closeness of the best near-parallel aerial line
         for (c, d) in aerial.line_endpoints:
             v = (d - c) / (d - c).norm()
             t = float(((mid - c) @ (d - c)) / ((d - c) @ (d - c)))
             closest = c + min(max(t, 0.0), 1.0) * (d - c)
-            if abs(float(u @ v)) >= math.cos(math.radians(cfg.line_angle_deg)):
-                best = max(best, 1.0 - float((mid - closest).norm()) ** 2 / cfg.line_distance_m**2)
-        total += float((b - a).norm()) * best
+            if abs(float(u @ v)) >= math.cos(math.radians(cfg.line_angle_deg)) and float((mid - closest).norm()) <= cfg.line_distance_m:
+                total += float((b - a).norm())
+                break
     for p in ground.points_xy:
         p_w = _transform(T, p[None])[0]
-        best = max([1.0 - float((p_w - q).norm()) ** 2 / cfg.point_distance_m**2 for q in aerial.points_xy] + [0.0])
-        total += cfg.point_weight_m * best
+        if any(float((p_w - q).norm()) <= cfg.point_distance_m for q in aerial.points_xy):
+            total += cfg.point_weight_m
     return total
 
 
@@ -144,9 +143,7 @@ def test_reweighting_ranks_by_mass_times_alignment_and_keeps_the_mass() -> None:
     out = reweight_hypotheses(_hypotheses(T, mass, valid), ground, stack_primitive_sets([aerial]), cfg, 3)
     assert out.t[0, :, 1].tolist() == [20.0, 20.5, 0.0]
     assert out.probability.sum().item() == pytest.approx(0.8)  # total mass kept
-    # alignment 10 m at 20 m, 10 m x (1 - 0.5^2 / 1.5^2) half a metre off it
-    a0, a1 = 10.0, 10.0 * (1 - 0.5**2 / cfg.line_distance_m**2)
-    assert out.probability[0, 0].item() == pytest.approx(0.8 * 0.2 * a0 / (0.2 * a0 + 0.1 * a1))
+    assert out.probability[0, 0].item() == pytest.approx(0.8 * 2 / 3)
     assert out.probability[0, 2].item() == 0.0
     assert out.objective[0].tolist() == [1.0, 2.0, 0.0]  # every field follows the new order
 
