@@ -273,10 +273,7 @@ class VerificationConfig(StrictModel):
     exp_registration.py, 256 particles, seed 0): ranking the 50 heaviest clusters by mass x alignment
     instead of mass alone gave unknown-rotation top-1 / 25 = 29 / 54 % instead of 12 / 54 %, known
     rotation 42 / 83 % instead of 37 / 83 %. The tolerances are first choices (the matching sigmas'
-    scale), not tuned. Scoring ground lines in pieces of at most 4 m (instead of whole) raised the
-    demo's top-1 (mean of seeds 0-2) from 35 to 39 % (known rotation) and 26 to 29 % (unknown), the
-    same as 2 m pieces at a third of the extra cost (+6 % matching time); KITTI 00 / 09 unchanged
-    within one submap.
+    scale), not tuned.
     """
 
     enabled: bool = Field(
@@ -285,10 +282,7 @@ class VerificationConfig(StrictModel):
     candidates: int = Field(
         default=50, ge=1, description="clusters per patch verified (heaviest first); at least hypotheses_per_patch"
     )
-    line_piece_m: float = Field(
-        default=4.0, gt=0, description="ground lines are scored in equal pieces of at most this length"
-    )
-    line_distance_m: float = Field(default=1.5, gt=0, description="a ground line piece's midpoint within this of an aerial line")
+    line_distance_m: float = Field(default=1.5, gt=0, description="a ground line's midpoint within this of an aerial line")
     line_angle_deg: float = Field(default=10.0, gt=0, le=90, description="... and its direction within this angle")
     point_distance_m: float = Field(default=2.0, gt=0, description="a ground point within this of an aerial point")
     point_weight_m: float = Field(default=5.0, ge=0, description="a matched point counts as this much line length")
