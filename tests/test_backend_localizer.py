@@ -285,6 +285,27 @@ def test_offline_mode_localizes() -> None:
     assert sum(1 for _, prior in world.calls if prior) == len(world.submap_frames)
 
 
+def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_path) -> None:
+    import dataclasses
+
+    from meridian_torch.config import EvaluationConfig
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.results import write_outputs
+
+    world, _loc, _events, result = run
+    write_outputs(tmp_path, result, crs="EPSG:32632")
+    evaluate_run(tmp_path, world.gt, EvaluationConfig())
+    stale = ("trajectory.tum", "trajectory_incremental.tum", "covariance.csv", "trajectory_latlon.csv",
+             "trajectory.geojson", "metrics.json")
+    assert all((tmp_path / name).is_file() for name in stale)
+    nan = np.full_like(result.T_world_base, np.nan)
+    lost = dataclasses.replace(result, localized=False, T_world_base=nan, T_world_base_incremental=nan, covariance=None)
+    written = write_outputs(tmp_path, lost, crs="EPSG:32632")
+    # A later evaluation must not find the earlier run's trajectories (it would report their ATE).
+    assert not any((tmp_path / name).exists() for name in stale)
+    assert set(written) == {p.name for p in tmp_path.iterdir()}
+
+
 def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     from meridian_torch.config import EvaluationConfig
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run

@@ -23,7 +23,7 @@ import numpy as np
 from meridian_torch.config import EvaluationConfig
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
-from meridian_torch.io.results import RunOutputs, read_outputs
+from meridian_torch.io.results import METRICS_JSON, RunOutputs, read_outputs
 
 __all__ = [
     "METRICS_JSON",
@@ -35,7 +35,6 @@ __all__ = [
     "trajectory_errors",
 ]
 
-METRICS_JSON = "metrics.json"
 
 
 def associate(

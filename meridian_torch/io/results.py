@@ -41,6 +41,7 @@ __all__ = [
     "INCREMENTAL_TUM",
     "LATLON_CSV",
     "LOOP_CLOSURES_CSV",
+    "METRICS_JSON",
     "SUBMAPS_CSV",
     "SUMMARY_JSON",
     "RunOutputs",
@@ -58,6 +59,10 @@ SUBMAPS_CSV = "submaps.csv"
 SUMMARY_JSON = "localization.json"
 LATLON_CSV = "trajectory_latlon.csv"
 GEOJSON = "trajectory.geojson"
+METRICS_JSON = "metrics.json"  # written by meridian_torch.evaluation from these outputs
+# Files a run writes only sometimes (when localized, with a CRS, with ground truth): a folder
+# reused for another run must not keep the previous run's copies.
+_OPTIONAL_OUTPUTS = (FINAL_TUM, INCREMENTAL_TUM, COVARIANCE_CSV, LATLON_CSV, GEOJSON, METRICS_JSON)
 
 _CANDIDATE_COLUMNS = [
     "submap_index",
@@ -155,9 +160,13 @@ def write_outputs(
     """Write every output of `result` into `out_dir`; returns {file name: path} of what was written.
 
     `crs` (the orthophoto's projected CRS, e.g. "EPSG:32632") adds the latitude/longitude outputs.
+    Optional outputs of an earlier run in the same folder that this run does not write (e.g. its
+    trajectory when this run is not localized, its metrics.json) are removed.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    for name in _OPTIONAL_OUTPUTS:
+        (out / name).unlink(missing_ok=True)
     written: dict[str, Path] = {}
 
     def text(name: str, content: str) -> None:
