@@ -171,7 +171,7 @@ def build_map(
     set_: SetOption = None,
     workers: Annotated[int | None, typer.Option(
         min=1, help="Worker processes (CPU; default aerial_map.workers). With the classical back ends use "
-                    "one per core: 2 processes build about 1.8x faster on 2 cores, the same map.")] = None,
+                    "one per core: on 2 cores 2 processes built a 600 m x 600 m map 1.55x faster, the same map.")] = None,
 ) -> None:
     """Turn an orthophoto into an aerial map of point and line primitives (resumable).
 

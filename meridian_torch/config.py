@@ -79,7 +79,8 @@ class AerialMapConfig(StrictModel):
         default=1,
         ge=1,
         description="worker processes describing patch batches (CPU only; same map). Classical back ends: set "
-        "it to the number of cores (measured in scripts/bench_aerial.py)",
+        "it to the number of cores (2 on 2 cores: 1.55x faster for a 600 m x 600 m map, 1.23x for 300 m; "
+        "scripts/bench_aerial.py). Each worker holds its own copy of the orthophoto and the back ends",
     )
 
 
