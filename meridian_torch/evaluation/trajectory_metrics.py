@@ -36,7 +36,6 @@ __all__ = [
 ]
 
 
-
 def associate(
     est_times: np.ndarray, gt_times: np.ndarray, max_difference_s: float
 ) -> tuple[np.ndarray, np.ndarray]:
