@@ -140,3 +140,21 @@ def test_pruned_sampler_batched_equals_loop_and_finds_planted() -> None:
         assert torch.equal(batched.masks[p, 0, :n], planted)
         J = (batched.masks[p, 0].double() @ M[p] * batched.masks[p, 0].double()).sum() / planted.sum()
         torch.testing.assert_close(batched.objective[p, 0], J)
+
+
+def test_patches_stopping_at_the_same_check_keep_their_results() -> None:
+    # Identical problems with identical seeds settle at the same early-stop check; the loop
+    # must then end with every patch's result in place (it once crashed on this).
+    cfg = ParticleConfig(n_particles=24, n_iterations=200, noise=False)  # noise-free ascent settles early
+    problem = planted_problem(5, 40, 6)
+    M, valid, pairs = batch([problem, problem, problem])
+    seeds = torch.full((3,), 11, dtype=torch.int64)
+    out = sample_inlier_sets(M, valid, pairs, cfg, seeds=seeds)
+    single = sample_inlier_sets(M[:1], valid[:1], pairs[:1], cfg, seeds=seeds[:1])
+    assert int(single.iterations[0]) < cfg.n_iterations  # the early stop did happen
+    for p in range(3):
+        assert torch.equal(out.masks[p], single.masks[0]) and torch.equal(out.counts[p], single.counts[0])
+    # patches without any association stop together too
+    empty = sample_inlier_sets(torch.zeros(2, 0, 0), torch.zeros(2, 0, dtype=torch.bool),
+                               torch.zeros(2, 0, 2, dtype=torch.int64), cfg)
+    assert not empty.valid.any()

@@ -232,11 +232,11 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
                 iterations[finished] = t
                 keep = (~done).nonzero().squeeze(1)
                 active = active[keep]
+                x, h, g = x[keep], h[keep], g[keep]
                 if active.numel() == 0:
                     break
                 A.keep(keep)
                 d_act, v_act, seeds_act = d_act[keep], v_act[keep], seeds_act[keep]
-                x, h, g = x[keep], h[keep], g[keep]
         if cfg.noise:
             sigma = sqrt_eta * (1.0 - t / (T - 1)) if cfg.anneal else sqrt_eta
             g = g + sigma * _normal(table, _row_words(seeds_act, t, n_particles), m)
