@@ -221,6 +221,10 @@ class TestSolveClipper:
         u0 = torch.zeros(n, dtype=torch.float64)
         u0[12] = 1.0
         assert torch.equal(inlier_indices(solve_clipper(M, u0=u0)), second)
+        # One (n,) start vector serves every problem of a batch.
+        batched = solve_clipper(torch.stack([M, M.flip(0, 1)]), u0=u0)
+        assert torch.equal(inlier_indices(batched, 0), second)
+        assert torch.equal(inlier_indices(batched, 1), solve_clipper(M.flip(0, 1), u0=u0).inliers[0].nonzero().flatten())
 
     @pytest.mark.parametrize("rounding", ROUNDINGS)
     def test_returned_sets_are_cliques(self, rounding: str) -> None:

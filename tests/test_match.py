@@ -92,7 +92,7 @@ def test_clipper_solver_and_match_arrays() -> None:
         [p.line_endpoints.numpy() for p in patches], [p.line_kinds.numpy() for p in patches],
         [p.line_descriptors.numpy() for p in patches], config=cfg,
     )
-    check_top(hyp, max(len(p.points_xy) for p in patches), kp, kl)
+    check_top(hyp, len(patches[0].points_xy), kp, kl)  # aerial lines count from patch 0's own points
     assert float(hyp.probability[0, 0]) == 1.0 and int(hyp.valid[0].sum()) == 1
 
 
@@ -146,6 +146,8 @@ def test_match_arrays_numpy_equals_torch_and_empty_inputs() -> None:
         (4, np.zeros((9, 16)), "ground_line_desc"),
         (5, [np.zeros((3, 2))], "aerial"),  # one patch where the other sequences have two
         (0, np.full((14, 2), np.nan), "ground_points"),
+        (3, np.full(10, 0.5), "ground_line_kinds"),  # kinds are integers
+        (6, [np.zeros((18, 8)), np.zeros((18, 16))], r"aerial_point_desc\[0\]"),  # D differs
     ],
 )
 def test_match_arrays_errors_name_the_argument(position: int, value: object, message: str) -> None:
@@ -168,6 +170,33 @@ def test_match_arrays_rejects_bad_patch_and_prior() -> None:
         match_arrays(*g, *aerial, rotation_prior=[0.1, 0.2, 0.3], config=SMALL)
     with pytest.raises(ValueError, match="at least one aerial patch"):
         match_arrays(*g, [], [], [], [], [], config=SMALL)
+
+
+def test_match_arrays_line_indices_count_from_each_patchs_own_points() -> None:
+    # The true patch comes second and has fewer points than the first: its aerial line indices
+    # in `pairs` must start at its own point count, not at the largest one in the batch.
+    torch.set_num_threads(1)
+    ground, patches, kp, kl = scene()
+    crowded = patches[1]
+    crowded = PrimitiveSet(torch.cat([crowded.points_xy] * 3), torch.cat([crowded.point_descriptors] * 3),
+                           torch.arange(3 * len(crowded.points_xy)), crowded.line_endpoints, crowded.line_kinds,
+                           crowded.line_descriptors, crowded.line_segment_ids)
+    order = [crowded, patches[0]]
+    hyp = match_arrays(*_arrays(ground), *[list(x) for x in zip(*[_arrays(p) for p in order])], config=CFG,
+                       generator=torch.Generator().manual_seed(0))
+    chosen = hyp.pairs[1][hyp.association_mask[1, 0]]
+    n_points = len(patches[0].points_xy)
+    lines = chosen[chosen[:, 0] >= 14]
+    assert len(lines) >= 4 and bool((lines[:, 1] < n_points + len(patches[0].line_endpoints)).all())
+    assert sum(int(a) - n_points == int(g) - 14 for g, a in lines.tolist()) >= 0.8 * len(lines)
+
+
+def test_match_arrays_several_empty_patches() -> None:
+    # patches without associations settle together in the sampler (this once crashed)
+    ground, patches, _, _ = scene()
+    empty = ([], [], [], [], [])
+    hyp = match_arrays(*_arrays(ground), *[[x] * 9 for x in empty], config=SMALL)
+    assert hyp.valid.shape == (9, 25) and not hyp.valid.any()
 
 
 def test_patch_chunking_does_not_change_results() -> None:

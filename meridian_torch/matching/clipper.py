@@ -212,7 +212,7 @@ def _check_inputs(
     valid = valid.to(M.device)
     if u0 is not None:
         if u0.dim() == 1:
-            u0 = u0.unsqueeze(0)
+            u0 = u0.unsqueeze(0).expand(B, -1)
         if u0.shape != (B, n):
             raise ValueError(f"u0 must have shape {(B, n)} or {(n,)}, got {tuple(u0.shape)}")
         u0 = u0.to(device=M.device, dtype=M.dtype)

@@ -151,6 +151,8 @@ def _array(x: object, name: str, tail: tuple[int, ...], dtype: torch.dtype) -> T
         raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
     if t.is_complex() or t.dtype == torch.bool:
         raise ValueError(f"{name}: expected real numbers, got dtype {t.dtype}")
+    if not dtype.is_floating_point and t.is_floating_point() and not bool((t == t.round()).all()):
+        raise ValueError(f"{name}: expected integers, got {t[t != t.round()][0].item()}")
     t = t.to(dtype)
     if dtype.is_floating_point and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name}: contains NaN or infinite values")
@@ -233,8 +235,10 @@ def match_arrays(
     Returns:
         `Hypotheses` with P rows: `T_world_odom[p, l]` (3 x 3 homogeneous SE(2)) maps odom x-y
         into world x-y for patch p, most probable first; `probability`, `valid` and
-        `association_mask` as documented there. Patches without usable associations get only
-        invalid rows (valid False, probability 0).
+        `association_mask` as documented there (float32 on the CPU). `pairs[p, k]` =
+        (ground index, aerial index), each counting points first, then lines: ground line i is
+        Ng + i, aerial line j of patch p is Na_p + j (patch p's own point count); -1 on padding.
+        Patches without usable associations get only invalid rows (valid False, probability 0).
 
     Raises:
         ValueError: naming the argument, on wrong shapes, non-finite values, unknown line kinds,
@@ -260,10 +264,16 @@ def match_arrays(
         _primitive_set(*fields, tuple(f"aerial_{n}[{p}]" for n in names))
         for p, fields in enumerate(zip(*sequences))
     ]
-    dims = {int(d.shape[1]) for fields in [ground, *patches] for d in (fields[1], fields[4]) if d.shape[0]}
-    if len(dims) > 1:
-        raise ValueError(f"descriptors (ground_point_desc, aerial_line_desc, ...) must share one dimension D, got {sorted(dims)}")
-    dim = dims.pop() if dims else 1
+    described = [("ground_point_desc", ground[1]), ("ground_line_desc", ground[4])] + [
+        (f"aerial_{kind}[{p}]", fields[k]) for p, fields in enumerate(patches)
+        for kind, k in (("point_desc", 1), ("line_desc", 4))
+    ]
+    described = [(name, int(d.shape[1])) for name, d in described if d.shape[0]]
+    for name, d in described[1:]:
+        if d != described[0][1]:
+            raise ValueError(f"{name}: descriptors of dimension {d}, but {described[0][0]} has "
+                             f"{described[0][1]}; D must be the same everywhere")
+    dim = described[0][1] if described else 1
     prior = None
     if rotation_prior is not None:
         try:
@@ -273,10 +283,12 @@ def match_arrays(
         prior = _array(flat, "rotation_prior", (), torch.float32)
         if prior.shape[0] not in (1, n_patches):
             raise ValueError(f"rotation_prior: expected one yaw or {n_patches} (one per patch), got {prior.shape[0]}")
-    return match_submap(
-        _with_dim(ground, dim),
-        stack_primitive_sets([_with_dim(p, dim) for p in patches]),
-        rotation_prior=prior,
-        config=config,
-        generator=generator,
-    )
+    aerial = stack_primitive_sets([_with_dim(p, dim) for p in patches])
+    hypotheses = match_submap(_with_dim(ground, dim), aerial, rotation_prior=prior, config=config, generator=generator)
+    # Internally aerial line j of every patch is (padded point count) + j; a caller indexes each
+    # patch's own arrays: (its number of points) + j.
+    padded = aerial.points_xy.shape[1]
+    n_points = torch.tensor([p[0].shape[0] for p in patches], device=hypotheses.pairs.device)
+    aerial_index = hypotheses.pairs[..., 1]
+    aerial_index = torch.where(aerial_index >= padded, aerial_index - padded + n_points[:, None], aerial_index)
+    return dataclasses.replace(hypotheses, pairs=torch.stack([hypotheses.pairs[..., 0], aerial_index], dim=-1))
