@@ -286,7 +286,7 @@ def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
 
     c = _pool(seed=5)
     dense = consistency_affinity(c, CFG)
-    i, j, v = sparse_affinity(c, CFG, block_rows=7)  # several row blocks
+    i, j, v = sparse_affinity(c, CFG)
     rebuilt = torch.zeros_like(dense)
     rebuilt[i, j] = v
     rebuilt = rebuilt + rebuilt.T
@@ -299,3 +299,50 @@ def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
     assert torch.equal(grown.inliers, fresh.inliers)
     key = lambda e: sorted(zip(e[0].tolist(), e[1].tolist(), e[2].tolist()))
     assert key(grown.edges) == key(fresh.edges)
+
+
+def _near_gate_pool(rng: np.random.Generator, n_submaps: int, per_submap: int) -> LoopClosureCandidates:
+    """Submaps along a winding path; candidates scattered around the true world pose at the scale of
+    the gates (up to 3 sigma in x-y and yaw), so many pairs sit near them; the pool order is shuffled
+    so the earlier-indexed candidate of a pair is from either submap."""
+    odom, world, path, submap = [], [], [], []
+    x = y = yaw = length = 0.0
+    for s in range(n_submaps):
+        step = float(rng.uniform(5.0, 60.0))
+        yaw += float(rng.normal(0.0, 0.5))
+        x, y, length = x + step * math.cos(yaw), y + step * math.sin(yaw), length + step
+        sigma_t = 2.0 + 0.05 * length
+        for _ in range(per_submap):
+            odom.append((x, y, yaw))
+            path.append(length)
+            submap.append(s)
+            dx, dy = rng.normal(0.0, sigma_t, 2)
+            T = _world((x, y, yaw), dx=float(dx), dyaw_deg=float(rng.normal(0.0, 8.0)))
+            world.append((T[0], T[1] + float(dy), T[2]))
+    order = rng.permutation(len(odom))
+    c = make_candidates(odom, world, path, submap=submap, quality=rng.uniform(0.05, 1.0, len(odom)).tolist())
+    return c.select(torch.from_numpy(order))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scaling=st.booleans(), fuse=st.booleans())
+def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse: bool) -> None:
+    from meridian_torch.backend.consistency import sparse_affinity
+
+    rng = np.random.default_rng(seed)
+    c = _near_gate_pool(rng, n_submaps=int(rng.integers(2, 9)), per_submap=int(rng.integers(1, 12)))
+    cfg = BackendConfig(path_length_scaling=scaling, fuse_quality=fuse)
+    dense = consistency_affinity(c, cfg)
+    i, j, v = sparse_affinity(c, cfg)
+    rebuilt = torch.zeros_like(dense)
+    rebuilt[i, j] = v
+    rebuilt = rebuilt + rebuilt.T
+    rebuilt.diagonal().fill_(1.0)
+    assert torch.equal(rebuilt, dense) and bool((i < j).all())
+    # a prefix's edges plus the new pairs are the whole graph
+    first_new = int(rng.integers(0, len(c) + 1))
+    head = sparse_affinity(c.select(torch.arange(first_new)), cfg)
+    tail = sparse_affinity(c, cfg, first_new=first_new)
+    assert bool((tail[1] >= first_new).all())
+    key = lambda e: sorted(zip(e[0].tolist(), e[1].tolist(), e[2].tolist()))
+    assert key(tuple(torch.cat([a, b]) for a, b in zip(head, tail))) == key((i, j, v))

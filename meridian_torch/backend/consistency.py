@@ -15,14 +15,16 @@ qualities by a geometric mean, cbrt(s q_i q_j), with a unit diagonal.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.config import BackendConfig
-from meridian_torch.geometry.se2 import wrap_angle
+from meridian_torch.geometry.se2 import se2_inverse, wrap_angle
 from meridian_torch.matching.clipper import solve_clipper
 
 __all__ = [
@@ -48,19 +50,25 @@ class PairErrors:
 
 
 def _relative(T_rows: Tensor, T_cols: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """x, y, yaw (R, C) of T_i^-1 T_j for rows i and columns j, elementwise (no (R, C, 3, 3) products)."""
-    yaw_r = torch.atan2(T_rows[:, 1, 0], T_rows[:, 0, 0])
-    yaw_c = torch.atan2(T_cols[:, 1, 0], T_cols[:, 0, 0])
-    dx = T_cols[None, :, 0, 2] - T_rows[:, None, 0, 2]
-    dy = T_cols[None, :, 1, 2] - T_rows[:, None, 1, 2]
-    c, s = torch.cos(yaw_r)[:, None], torch.sin(yaw_r)[:, None]
-    return c * dx + s * dy, -s * dx + c * dy, yaw_c[None, :] - yaw_r[:, None]
+    """x, y, yaw of T_i^-1 T_j, elementwise over broadcastable (..., 3, 3) poses (no 3x3 products)."""
+    yaw_r = torch.atan2(T_rows[..., 1, 0], T_rows[..., 0, 0])
+    yaw_c = torch.atan2(T_cols[..., 1, 0], T_cols[..., 0, 0])
+    dx = T_cols[..., 0, 2] - T_rows[..., 0, 2]
+    dy = T_cols[..., 1, 2] - T_rows[..., 1, 2]
+    c, s = torch.cos(yaw_r), torch.sin(yaw_r)
+    return c * dx + s * dy, -s * dx + c * dy, yaw_c - yaw_r
+
+
+def _outer(c: LoopClosureCandidates, dim: int) -> LoopClosureCandidates:
+    """`c` with a unit axis inserted at `dim` (0 or 1) of every field, to broadcast rows against columns."""
+    return LoopClosureCandidates(**{f.name: getattr(c, f.name).unsqueeze(dim) for f in fields(c)})
 
 
 def _pair_errors(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
+    """Errors of the pairs (row, column), elementwise over the broadcast shape of the two sets."""
     ox, oy, oyaw = _relative(rows.T_odom_base, cols.T_odom_base)
     cx, cy, cyaw = _relative(rows.T_world_base, cols.T_world_base)
-    length = (rows.path_length_m[:, None] - cols.path_length_m[None, :]).abs()
+    length = (rows.path_length_m - cols.path_length_m).abs()
     if not cfg.path_length_scaling:
         length = torch.zeros_like(length)
     return PairErrors(
@@ -77,18 +85,18 @@ def pair_errors(c: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
     E = odom_rel^-1 cv_rel has yaw(E) = yaw(cv_rel) - yaw(odom_rel) and |xy(E)| =
     |xy(cv_rel) - xy(odom_rel)| (the rotation by -yaw(odom_rel) keeps the norm).
     """
-    return _pair_errors(c, c, cfg)
+    return _pair_errors(_outer(c, 1), _outer(c, 0), cfg)
 
 
-def _block_affinity(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
-    """(R, C) fused affinity of rows (first of the pair) against columns, no diagonal handling."""
+def _affinity(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
+    """Fused affinity of the pairs (row, column), elementwise (broadcast), no diagonal handling."""
     e = _pair_errors(rows, cols, cfg)
     inside = (e.yaw_error < e.sigma_yaw) & (e.translation_error < e.sigma_t)
     log_k = -0.5 * (e.yaw_error / e.sigma_yaw).square() - 0.5 * (e.translation_error / e.sigma_t).square()
     s = torch.where(inside, torch.exp(0.5 * log_k), torch.zeros_like(log_k))
-    s = s.masked_fill(rows.submap_index[:, None] == cols.submap_index[None, :], 0.0)
+    s = s.masked_fill(rows.submap_index == cols.submap_index, 0.0)
     if cfg.fuse_quality:
-        s = (s * rows.quality[:, None] * cols.quality[None, :]).pow(1.0 / 3.0)
+        s = (s * rows.quality * cols.quality).pow(1.0 / 3.0)
     return s.masked_fill(s <= cfg.affinity_eps, 0.0)
 
 
@@ -97,13 +105,13 @@ def consistency_scores(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
     raw = cfg.model_copy(update={"fuse_quality": False, "affinity_eps": 0.0})
     # |xy(E)| of (i, j) and (j, i) differ slightly (E_ji is E_ij seen from the other end); score
     # each pair once, as i < j, like the reference's pair loop.
-    s = _block_affinity(c, c, raw).triu(1)
+    s = _affinity(_outer(c, 1), _outer(c, 0), raw).triu(1)
     return s + s.T
 
 
 def consistency_affinity(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
     """(N, N) dense CLIPPER affinity: cbrt(s q_i q_j) (or s), <= affinity_eps dropped, unit diagonal."""
-    M = _block_affinity(c, c, cfg).triu(1)
+    M = _affinity(_outer(c, 1), _outer(c, 0), cfg).triu(1)
     M = M + M.T
     M.diagonal().fill_(1.0)
     return M
@@ -112,30 +120,77 @@ def consistency_affinity(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor
 Edges = tuple[Tensor, Tensor, Tensor]  # (i, j, value) with i < j: the non-zero off-diagonal affinities
 
 
-def sparse_affinity(
-    c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: int = 0, block_rows: int = 512
-) -> Edges:
-    """Non-zero off-diagonal affinities (i < j) as (i, j, value), computed in row blocks.
+def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
+    """(G, 6) key rows (submap, path length, odom x, y, cos, sin) and (N,) each candidate's group.
+
+    Candidates of one submap share its odometry pose and path length; keying on them too keeps
+    the grouping right for any input."""
+    T = c.T_odom_base
+    key = torch.stack(
+        [c.submap_index.to(torch.float64), c.path_length_m, T[:, 0, 2], T[:, 1, 2], T[:, 0, 0], T[:, 1, 0]], dim=1
+    )
+    return torch.unique(key, dim=0, return_inverse=True)
+
+
+def _possible_pairs(c: LoopClosureCandidates, cfg: BackendConfig, first_new: int) -> tuple[Tensor, Tensor]:
+    """(i, j) with i < j and j >= first_new: every pair that can have a non-zero affinity (and some more).
+
+    For a candidate a of submap A, the pose it predicts for submap B's base is
+    Q = T_world_base_a * T_odom_base_A^-1 * T_odom_base_B, and the translation error of (a, b)
+    scored with a as the row is |t_b - t_Q|. Scored with b as the row, it differs from that by
+    at most |o| * yaw error (o = odometry offset between the submaps), and a non-zero affinity
+    needs yaw error < sigma_yaw and translation error < sigma_t. So a radius query of radius
+    sigma_t + |o| sigma_yaw around t_Q in B's candidate positions finds every such pair; the
+    graph is sparse (wrong candidates rarely agree) and this avoids scoring all N^2 pairs.
+    """
+    keys, group = _submap_groups(c)
+    members = torch.split(torch.argsort(group, stable=True), torch.bincount(group, minlength=len(keys)).tolist())
+    new_groups = torch.unique(group[first_new:]).tolist()
+    positions = c.T_world_base[:, :2, 2].numpy()
+    trees = {}
+
+    def tree(g: int) -> cKDTree:
+        if g not in trees:
+            trees[g] = cKDTree(positions[members[g].numpy()])
+        return trees[g]
+
+    found_i, found_j = [torch.zeros(0, dtype=torch.int64)], [torch.zeros(0, dtype=torch.int64)]
+    done: set[int] = set()
+    for g in new_groups:
+        done.add(g)
+        for h in range(len(keys)):
+            if h in done or keys[h, 0] == keys[g, 0]:  # each unordered pair once; none within a submap
+                continue
+            a, b = members[g], members[h]
+            T_odom_a, T_odom_b = c.T_odom_base[a[0]], c.T_odom_base[b[0]]
+            offset = se2_inverse(T_odom_a) @ T_odom_b  # odometry motion from submap g to h
+            Q = c.T_world_base[a] @ offset
+            length = abs(float(keys[g, 1] - keys[h, 1])) if cfg.path_length_scaling else 0.0
+            sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
+            sigma_yaw = math.radians(cfg.sigma_yaw_deg + cfg.sigma_yaw_deg_per_m * length)
+            radius = sigma_t + float(offset[:2, 2].norm()) * sigma_yaw + 1e-6
+            near = cKDTree(Q[:, :2, 2].numpy()).sparse_distance_matrix(tree(h), radius, output_type="ndarray")
+            ia, ib = a[torch.from_numpy(near["i"].astype(np.int64))], b[torch.from_numpy(near["j"].astype(np.int64))]
+            found_i.append(torch.minimum(ia, ib))
+            found_j.append(torch.maximum(ia, ib))
+    i, j = torch.cat(found_i), torch.cat(found_j)
+    keep = j >= first_new
+    return i[keep], j[keep]
+
+
+def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: int = 0) -> Edges:
+    """Non-zero off-diagonal affinities (i < j) as (i, j, value), the same values as the dense matrix.
 
     Only pairs with j >= `first_new` are scored (the others are known from an earlier call on a
-    prefix of the same candidates). Memory stays O(block_rows * N + non-zeros); the graph is very
-    sparse (wrong candidates rarely agree).
+    prefix of the same candidates). Pairs that cannot be consistent are skipped by a radius
+    query per pair of submaps (`_possible_pairs`), so time and memory grow with the pairs of
+    nearby predictions, not with N^2.
     """
-    n = len(c)
-    found_i, found_j = [torch.zeros(0, dtype=torch.int64)], [torch.zeros(0, dtype=torch.int64)]
-    found_v = [torch.zeros(0, dtype=torch.float64)]
-    for a in range(0, n, block_rows):
-        b = min(a + block_rows, n)
-        col0 = max(a, first_new)
-        if col0 >= n:
-            continue
-        M = _block_affinity(c.select(torch.arange(a, b)), c.select(torch.arange(col0, n)), cfg)
-        M = M.triu(a - col0 + 1)  # global column col0 + k > global row a + r
-        i, j = torch.nonzero(M, as_tuple=True)
-        found_i.append(i + a)
-        found_j.append(j + col0)
-        found_v.append(M[i, j])
-    return torch.cat(found_i), torch.cat(found_j), torch.cat(found_v)
+    i, j = _possible_pairs(c, cfg, first_new)
+    v = _affinity(c.select(i), c.select(j), cfg)
+    keep = v > 0
+    order = torch.argsort(i[keep] * max(len(c), 1) + j[keep])
+    return i[keep][order], j[keep][order], v[keep][order]
 
 
 @dataclass(frozen=True)
