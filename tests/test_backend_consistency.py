@@ -16,6 +16,7 @@ from meridian_torch.backend.consistency import (
     consistency_scores,
     pair_errors,
     select_inliers,
+    sparse_affinity,
 )
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.se2 import se2_inverse, se2_matrix
@@ -281,17 +282,21 @@ def test_a_failed_clipper_solve_falls_back_to_the_greedy_clique(monkeypatch) -> 
     assert torch.equal(sel.inliers, expected) and sel.score > 10.0
 
 
-def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
-    from meridian_torch.backend.consistency import sparse_affinity
-
-    c = _pool(seed=5)
-    dense = consistency_affinity(c, CFG)
-    i, j, v = sparse_affinity(c, CFG)
+def _sparse_equal_to_dense(c: LoopClosureCandidates, cfg: BackendConfig):
+    """The sparse edges of `c`, after checking they rebuild the dense affinity bit for bit."""
+    dense = consistency_affinity(c, cfg)
+    i, j, v = sparse_affinity(c, cfg)
     rebuilt = torch.zeros_like(dense)
     rebuilt[i, j] = v
     rebuilt = rebuilt + rebuilt.T
     rebuilt.diagonal().fill_(1.0)
     assert torch.equal(rebuilt, dense) and bool((i < j).all())
+    return i, j, v
+
+
+def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
+    c = _pool(seed=5)
+    _sparse_equal_to_dense(c, CFG)
     n_known = 21
     prefix = select_inliers(c.select(torch.arange(n_known)), CFG)
     grown = select_inliers(c, CFG, torch.Generator().manual_seed(0), known_edges=(n_known, prefix.edges))
@@ -327,18 +332,10 @@ def _near_gate_pool(rng: np.random.Generator, n_submaps: int, per_submap: int) -
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), scaling=st.booleans(), fuse=st.booleans())
 def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse: bool) -> None:
-    from meridian_torch.backend.consistency import sparse_affinity
-
     rng = np.random.default_rng(seed)
     c = _near_gate_pool(rng, n_submaps=int(rng.integers(2, 9)), per_submap=int(rng.integers(1, 12)))
     cfg = BackendConfig(path_length_scaling=scaling, fuse_quality=fuse)
-    dense = consistency_affinity(c, cfg)
-    i, j, v = sparse_affinity(c, cfg)
-    rebuilt = torch.zeros_like(dense)
-    rebuilt[i, j] = v
-    rebuilt = rebuilt + rebuilt.T
-    rebuilt.diagonal().fill_(1.0)
-    assert torch.equal(rebuilt, dense) and bool((i < j).all())
+    i, j, v = _sparse_equal_to_dense(c, cfg)
     # a prefix's edges plus the new pairs are the whole graph
     first_new = int(rng.integers(0, len(c) + 1))
     head = sparse_affinity(c.select(torch.arange(first_new)), cfg)
