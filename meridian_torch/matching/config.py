@@ -219,11 +219,15 @@ class PlaceRecognitionConfig(StrictModel):
         "what lets the localizer fix at all (measured: ATE 0.7 m vs a wrong fix with global)",
     )
     exhaustive_max_patches: int = Field(
-        default=128,
+        default=1000,
         ge=0,
-        description="'auto' matches every patch up to this map size (about 350 m x 350 m at 60 m / 50 %); "
-        "matching time before the fix grows linearly with it (demo, 81 patches: about 5 s per submap on 2 "
-        "cores, 0.06 s per patch)",
+        description="'auto' matches every patch up to this map size (about 1 km x 1 km at 60 m / 50 %). "
+        "Matching time before the fix grows linearly with it, about 0.08 s per patch and submap on 2 cores "
+        "(KITTI 09 world, 609 patches: 48 s per submap); after the fix only 'near' patches are matched. "
+        "Measured on the full KITTI 00 / 09 worlds against global top-25: KITTI 09 gets a fix (none with "
+        "global), KITTI 00 fixes after 280 m instead of 530 m with final ATE 1.2 m instead of 1.4 m; the "
+        "real-time factor falls from 0.93 to 0.58 (KITTI 00) and 0.57 to 0.32 (KITTI 09). Lower it when a "
+        "global describer that ranks the true patch well is used (AnyLoc) or real time matters more",
     )
     k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
     near_radius_m: float = Field(default=25.0, gt=0, description="disk radius around the predicted position, 'near' mode")
