@@ -308,8 +308,9 @@ def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
 
 def _near_gate_pool(rng: np.random.Generator, n_submaps: int, per_submap: int) -> LoopClosureCandidates:
     """Submaps along a winding path; candidates scattered around the true world pose at the scale of
-    the gates (up to 3 sigma in x-y and yaw), so many pairs sit near them; the pool order is shuffled
-    so the earlier-indexed candidate of a pair is from either submap."""
+    the gates (up to 3 sigma in x-y and yaw), so many pairs sit near them, and a third spread over
+    600 m (so both the radius query and the every-pair block of `sparse_affinity` are used); the
+    pool order is shuffled so the earlier-indexed candidate of a pair is from either submap."""
     odom, world, path, submap = [], [], [], []
     x = y = yaw = length = 0.0
     for s in range(n_submaps):
@@ -321,6 +322,9 @@ def _near_gate_pool(rng: np.random.Generator, n_submaps: int, per_submap: int) -
             odom.append((x, y, yaw))
             path.append(length)
             submap.append(s)
+            if rng.random() < 1 / 3:
+                world.append((float(rng.uniform(-300, 300)), float(rng.uniform(-300, 300)), float(rng.uniform(-3, 3))))
+                continue
             dx, dy = rng.normal(0.0, sigma_t, 2)
             T = _world((x, y, yaw), dx=float(dx), dyaw_deg=float(rng.normal(0.0, 8.0)))
             world.append((T[0], T[1] + float(dy), T[2]))

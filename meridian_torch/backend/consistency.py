@@ -14,6 +14,7 @@ qualities by a geometric mean, cbrt(s q_i q_j), with a unit diagonal.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, fields
 
@@ -132,65 +133,80 @@ def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
     return torch.unique(key, dim=0, return_inverse=True)
 
 
-def _possible_pairs(c: LoopClosureCandidates, cfg: BackendConfig, first_new: int) -> tuple[Tensor, Tensor]:
-    """(i, j) with i < j and j >= first_new: every pair that can have a non-zero affinity (and some more).
+def _pair_edges(c: LoopClosureCandidates, cfg: BackendConfig, i: Tensor, j: Tensor) -> Edges:
+    """The non-zero affinities of the pairs (i, j), each scored with its lower index as the row."""
+    lo, hi = torch.minimum(i, j), torch.maximum(i, j)
+    v = _affinity(c.select(lo), c.select(hi), cfg)
+    keep = v > 0
+    return lo[keep], hi[keep], v[keep]
 
-    For a candidate a of submap A, the pose it predicts for submap B's base is
-    Q = T_world_base_a * T_odom_base_A^-1 * T_odom_base_B, and the translation error of (a, b)
-    scored with a as the row is |t_b - t_Q|. Scored with b as the row, it differs from that by
+
+def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, others: Tensor) -> Edges:
+    """Non-zero affinities between the candidates `mine` (one submap) and `others` (other submaps).
+
+    For a candidate b of submap B, the pose it predicts for submap A's base is
+    Q = T_world_base_b * T_odom_base_B^-1 * T_odom_base_A, and the translation error of (b, a)
+    scored with b as the row is |t_a - t_Q|. Scored with a as the row, it differs from that by
     at most |o| * yaw error (o = odometry offset between the submaps), and a non-zero affinity
-    needs yaw error < sigma_yaw and translation error < sigma_t. So a radius query of radius
-    sigma_t + |o| sigma_yaw around t_Q in B's candidate positions finds every such pair; the
-    graph is sparse (wrong candidates rarely agree) and this avoids scoring all N^2 pairs.
+    needs yaw error < sigma_yaw and translation error < sigma_t. So only the candidates of A
+    within sigma_t + |o| sigma_yaw of t_Q can pair with b: a radius query finds them. Where that
+    disk covers much of A's candidates (far-apart submaps: the noise grows with path length)
+    scoring every pair is cheaper than the query, and gives the same edges.
     """
-    keys, group = _submap_groups(c)
-    members = torch.split(torch.argsort(group, stable=True), torch.bincount(group, minlength=len(keys)).tolist())
-    new_groups = torch.unique(group[first_new:]).tolist()
-    positions = c.T_world_base[:, :2, 2].numpy()
-    trees = {}
+    offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
+    predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
+    length = (c.path_length_m[others] - c.path_length_m[mine[0]]).abs()
+    if not cfg.path_length_scaling:
+        length = torch.zeros_like(length)
+    sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
+    sigma_yaw = math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length
+    radius = sigma_t + offset[:, :2, 2].norm(dim=1) * sigma_yaw + 1e-6
+    xy = c.T_world_base[mine, :2, 2]
+    extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
+    wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
+    hits = cKDTree(xy.numpy()).query_ball_point(predicted[~wide].numpy(), radius[~wide].numpy())
+    counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
+    flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
+    queried = _pair_edges(c, cfg, mine[torch.from_numpy(flat)], others[~wide].repeat_interleave(counts))
+    return tuple(torch.cat(x) for x in zip(queried, _block_edges(c, cfg, mine, others[wide])))  # type: ignore[return-value]
 
-    def tree(g: int) -> cKDTree:
-        if g not in trees:
-            trees[g] = cKDTree(positions[members[g].numpy()])
-        return trees[g]
 
-    found_i, found_j = [torch.zeros(0, dtype=torch.int64)], [torch.zeros(0, dtype=torch.int64)]
-    done: set[int] = set()
-    for g in new_groups:
-        done.add(g)
-        for h in range(len(keys)):
-            if h in done or keys[h, 0] == keys[g, 0]:  # each unordered pair once; none within a submap
-                continue
-            a, b = members[g], members[h]
-            T_odom_a, T_odom_b = c.T_odom_base[a[0]], c.T_odom_base[b[0]]
-            offset = se2_inverse(T_odom_a) @ T_odom_b  # odometry motion from submap g to h
-            Q = c.T_world_base[a] @ offset
-            length = abs(float(keys[g, 1] - keys[h, 1])) if cfg.path_length_scaling else 0.0
-            sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
-            sigma_yaw = math.radians(cfg.sigma_yaw_deg + cfg.sigma_yaw_deg_per_m * length)
-            radius = sigma_t + float(offset[:2, 2].norm()) * sigma_yaw + 1e-6
-            near = cKDTree(Q[:, :2, 2].numpy()).sparse_distance_matrix(tree(h), radius, output_type="ndarray")
-            ia, ib = a[torch.from_numpy(near["i"].astype(np.int64))], b[torch.from_numpy(near["j"].astype(np.int64))]
-            found_i.append(torch.minimum(ia, ib))
-            found_j.append(torch.maximum(ia, ib))
-    i, j = torch.cat(found_i), torch.cat(found_j)
-    keep = j >= first_new
-    return i[keep], j[keep]
+def _block_edges(c: LoopClosureCandidates, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
+    """The non-zero affinities of every pair of `rows` x `cols` (disjoint), each scored with its
+    lower index as the row, by broadcasting (no gathers)."""
+    a, b = c.select(rows), c.select(cols)
+    lower = rows[:, None] < cols[None, :]
+    if bool(lower.all()):
+        M = _affinity(_outer(a, 1), _outer(b, 0), cfg)
+    elif not bool(lower.any()):
+        M = _affinity(_outer(b, 1), _outer(a, 0), cfg).T
+    else:
+        M = torch.where(lower, _affinity(_outer(a, 1), _outer(b, 0), cfg), _affinity(_outer(b, 1), _outer(a, 0), cfg).T)
+    r, k = torch.nonzero(M, as_tuple=True)
+    return torch.minimum(rows[r], cols[k]), torch.maximum(rows[r], cols[k]), M[r, k]
 
 
 def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: int = 0) -> Edges:
     """Non-zero off-diagonal affinities (i < j) as (i, j, value), the same values as the dense matrix.
 
     Only pairs with j >= `first_new` are scored (the others are known from an earlier call on a
-    prefix of the same candidates). Pairs that cannot be consistent are skipped by a radius
-    query per pair of submaps (`_possible_pairs`), so time and memory grow with the pairs of
-    nearby predictions, not with N^2.
+    prefix of the same candidates). Each submap with new candidates is scored against the
+    candidates of the submaps not yet done (`_submap_edges`: a radius query skips the pairs that
+    cannot be consistent), so time grows with the pairs of nearby predictions, not with N^2.
     """
-    i, j = _possible_pairs(c, cfg, first_new)
-    v = _affinity(c.select(i), c.select(j), cfg)
-    keep = v > 0
-    order = torch.argsort(i[keep] * max(len(c), 1) + j[keep])
-    return i[keep][order], j[keep][order], v[keep][order]
+    keys, group = _submap_groups(c)
+    pending = torch.ones(len(keys), dtype=torch.bool)  # submaps whose pairs with the rest are not yet found
+    parts = [(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64))]
+    for g in torch.unique(group[first_new:]).tolist():
+        pending[g] = False
+        others = torch.nonzero(pending[group] & (keys[group, 0] != keys[g, 0])).flatten()
+        if len(others):
+            parts.append(_submap_edges(c, cfg, torch.nonzero(group == g).flatten(), others))
+    i, j, v = (torch.cat(x) for x in zip(*parts))
+    keep = j >= first_new
+    i, j, v = i[keep], j[keep], v[keep]
+    order = torch.argsort(i * max(len(c), 1) + j)
+    return i[order], j[order], v[order]
 
 
 @dataclass(frozen=True)
