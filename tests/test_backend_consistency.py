@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from meridian_torch.backend import consistency
 from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses
 from meridian_torch.backend.consistency import (
     consistency_affinity,
@@ -258,7 +260,6 @@ def test_pruned_solve_equals_the_full_dense_solve() -> None:
 
 
 def test_a_failed_clipper_solve_falls_back_to_the_greedy_clique(monkeypatch) -> None:
-    from meridian_torch.backend import consistency
     from meridian_torch.matching.clipper import ClipperResult
 
     def empty_solve(M, *args, **kwargs):
@@ -283,14 +284,16 @@ def test_a_failed_clipper_solve_falls_back_to_the_greedy_clique(monkeypatch) -> 
 
 
 def _sparse_equal_to_dense(c: LoopClosureCandidates, cfg: BackendConfig):
-    """The sparse edges of `c`, after checking they rebuild the dense affinity bit for bit."""
+    """The sparse edges of `c`, after checking they rebuild the dense affinity: the same edges, the
+    same values up to rounding (vectorised and scalar math kernels may differ in the last bit)."""
     dense = consistency_affinity(c, cfg)
     i, j, v = sparse_affinity(c, cfg)
     rebuilt = torch.zeros_like(dense)
     rebuilt[i, j] = v
     rebuilt = rebuilt + rebuilt.T
     rebuilt.diagonal().fill_(1.0)
-    assert torch.equal(rebuilt, dense) and bool((i < j).all())
+    assert torch.equal(rebuilt > 0, dense > 0) and bool((i < j).all())
+    torch.testing.assert_close(rebuilt, dense, rtol=0.0, atol=1e-12)
     return i, j, v
 
 
@@ -334,12 +337,13 @@ def _near_gate_pool(rng: np.random.Generator, n_submaps: int, per_submap: int) -
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), scaling=st.booleans(), fuse=st.booleans())
-def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse: bool) -> None:
+@given(seed=st.integers(0, 2**31 - 1), scaling=st.booleans(), fuse=st.booleans(), tiny_chunks=st.booleans())
+def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse: bool, tiny_chunks: bool) -> None:
     rng = np.random.default_rng(seed)
     c = _near_gate_pool(rng, n_submaps=int(rng.integers(2, 9)), per_submap=int(rng.integers(1, 12)))
     cfg = BackendConfig(path_length_scaling=scaling, fuse_quality=fuse)
-    i, j, v = _sparse_equal_to_dense(c, cfg)
+    with mock.patch.object(consistency, "_CHUNK_PAIRS", 7 if tiny_chunks else consistency._CHUNK_PAIRS):
+        i, j, v = _sparse_equal_to_dense(c, cfg)
     # a prefix's edges plus the new pairs are the whole graph
     first_new = int(rng.integers(0, len(c) + 1))
     head = sparse_affinity(c.select(torch.arange(first_new)), cfg)

@@ -133,12 +133,24 @@ def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
     return torch.unique(key, dim=0, return_inverse=True)
 
 
+_CHUNK_PAIRS = 1 << 21  # pairs scored at once (memory: a few hundred bytes each in temporaries)
+
+
+def _cat_edges(parts: list[Edges]) -> Edges:
+    empty = (torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64))
+    return tuple(torch.cat(x) for x in zip(empty, *parts))  # type: ignore[return-value]
+
+
 def _pair_edges(c: LoopClosureCandidates, cfg: BackendConfig, i: Tensor, j: Tensor) -> Edges:
     """The non-zero affinities of the pairs (i, j), each scored with its lower index as the row."""
     lo, hi = torch.minimum(i, j), torch.maximum(i, j)
-    v = _affinity(c.select(lo), c.select(hi), cfg)
-    keep = v > 0
-    return lo[keep], hi[keep], v[keep]
+    parts = []
+    for k in range(0, len(lo), _CHUNK_PAIRS):
+        a, b = lo[k : k + _CHUNK_PAIRS], hi[k : k + _CHUNK_PAIRS]
+        v = _affinity(c.select(a), c.select(b), cfg)
+        keep = v > 0
+        parts.append((a[keep], b[keep], v[keep]))
+    return _cat_edges(parts)
 
 
 def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, others: Tensor) -> Edges:
@@ -168,22 +180,28 @@ def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, ot
     counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
     flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
     queried = _pair_edges(c, cfg, mine[torch.from_numpy(flat)], others[~wide].repeat_interleave(counts))
-    return tuple(torch.cat(x) for x in zip(queried, _block_edges(c, cfg, mine, others[wide])))  # type: ignore[return-value]
+    return _cat_edges([queried, _block_edges(c, cfg, mine, others[wide])])
 
 
 def _block_edges(c: LoopClosureCandidates, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
     """The non-zero affinities of every pair of `rows` x `cols` (disjoint), each scored with its
-    lower index as the row, by broadcasting (no gathers)."""
-    a, b = c.select(rows), c.select(cols)
-    lower = rows[:, None] < cols[None, :]
-    if bool(lower.all()):
-        M = _affinity(_outer(a, 1), _outer(b, 0), cfg)
-    elif not bool(lower.any()):
-        M = _affinity(_outer(b, 1), _outer(a, 0), cfg).T
-    else:
-        M = torch.where(lower, _affinity(_outer(a, 1), _outer(b, 0), cfg), _affinity(_outer(b, 1), _outer(a, 0), cfg).T)
-    r, k = torch.nonzero(M, as_tuple=True)
-    return torch.minimum(rows[r], cols[k]), torch.maximum(rows[r], cols[k]), M[r, k]
+    lower index as the row, by broadcasting (no gathers), a block of rows at a time."""
+    parts = []
+    b = c.select(cols)
+    step = max(1, _CHUNK_PAIRS // max(len(cols), 1))
+    for k0 in range(0, len(rows) if len(cols) else 0, step):
+        block = rows[k0 : k0 + step]
+        a = c.select(block)
+        lower = block[:, None] < cols[None, :]
+        if bool(lower.all()):
+            M = _affinity(_outer(a, 1), _outer(b, 0), cfg)
+        elif not bool(lower.any()):
+            M = _affinity(_outer(b, 1), _outer(a, 0), cfg).T
+        else:
+            M = torch.where(lower, _affinity(_outer(a, 1), _outer(b, 0), cfg), _affinity(_outer(b, 1), _outer(a, 0), cfg).T)
+        r, k = torch.nonzero(M, as_tuple=True)
+        parts.append((torch.minimum(block[r], cols[k]), torch.maximum(block[r], cols[k]), M[r, k]))
+    return _cat_edges(parts)
 
 
 def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: int = 0) -> Edges:
@@ -196,13 +214,13 @@ def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: 
     """
     keys, group = _submap_groups(c)
     pending = torch.ones(len(keys), dtype=torch.bool)  # submaps whose pairs with the rest are not yet found
-    parts = [(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64))]
+    parts = []
     for g in torch.unique(group[first_new:]).tolist():
         pending[g] = False
         others = torch.nonzero(pending[group] & (keys[group, 0] != keys[g, 0])).flatten()
         if len(others):
             parts.append(_submap_edges(c, cfg, torch.nonzero(group == g).flatten(), others))
-    i, j, v = (torch.cat(x) for x in zip(*parts))
+    i, j, v = _cat_edges(parts)
     keep = j >= first_new
     i, j, v = i[keep], j[keep], v[keep]
     order = torch.argsort(i * max(len(c), 1) + j)
