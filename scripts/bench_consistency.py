@@ -6,10 +6,9 @@ scored against the whole pool (`sparse_affinity(..., first_new=...)`). This buil
 `--submaps` submaps along a winding path, each with one candidate near its true world pose and
 `--per-submap - 1` wrong ones spread uniformly over a `--area-m` square map with random yaw. It
 times, side by side in one run, the shipped `sparse_affinity` (radius queries find the pairs
-that can be consistent) and the earlier implementation (every pair
-scored, in row blocks of 512), checks that both give the same edges (values equal up to
-rounding), and prints the time per
-submap, the total and the ratio, and the process's peak memory after each.
+that can be consistent) and the earlier implementation (every pair scored, in row blocks of
+512), checks that both give the same edges (values equal up to rounding), and prints the time
+per submap, the total and the ratio, and the process's peak memory after each.
 
     python scripts/bench_consistency.py --submaps 5 --per-submap 15000   # before a fix, every patch matched
     python scripts/bench_consistency.py --submaps 82 --per-submap 50     # a final pass: many small submaps
