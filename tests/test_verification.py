@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
-from meridian_torch.matching.verification import alignment_score, reweight_hypotheses
+from meridian_torch.matching.verification import alignment_score, line_pieces, reweight_hypotheses
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
 
@@ -43,26 +43,53 @@ def _random_set(gen: torch.Generator, n_points: int, n_lines: int) -> PrimitiveS
 def _loop_alignment(T: torch.Tensor, ground: PrimitiveSet, aerial: PrimitiveSet, cfg: VerificationConfig) -> float:
     """One pose, plain loops: the definition in the module docstring."""
     total = 0.0
+    pieces = []
     for (a, b) in ground.line_endpoints:
+        k = math.ceil(float((b - a).norm()) / cfg.line_piece_m)
+        pieces += [(a + (b - a) * j / k, a + (b - a) * (j + 1) / k) for j in range(k)]
+    for (a, b) in pieces:
         a_w, b_w = _transform(T, a[None])[0], _transform(T, b[None])[0]
         mid, u = (a_w + b_w) / 2, (b_w - a_w) / (b_w - a_w).norm()
+        best = 0.0  # closeness of the best near-parallel aerial line
         for (c, d) in aerial.line_endpoints:
             v = (d - c) / (d - c).norm()
             t = float(((mid - c) @ (d - c)) / ((d - c) @ (d - c)))
             closest = c + min(max(t, 0.0), 1.0) * (d - c)
-            if abs(float(u @ v)) >= math.cos(math.radians(cfg.line_angle_deg)) and float((mid - closest).norm()) <= cfg.line_distance_m:
-                total += float((b - a).norm())
-                break
+            if abs(float(u @ v)) >= math.cos(math.radians(cfg.line_angle_deg)):
+                best = max(best, 1.0 - float((mid - closest).norm()) ** 2 / cfg.line_distance_m**2)
+        total += float((b - a).norm()) * best
     for p in ground.points_xy:
         p_w = _transform(T, p[None])[0]
-        if any(float((p_w - q).norm()) <= cfg.point_distance_m for q in aerial.points_xy):
-            total += cfg.point_weight_m
+        best = max([1.0 - float((p_w - q).norm()) ** 2 / cfg.point_distance_m**2 for q in aerial.points_xy] + [0.0])
+        total += cfg.point_weight_m * best
     return total
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(0.01, 30.0), min_size=1, max_size=6), st.floats(0.5, 5.0))
+def test_line_pieces_tile_each_line_in_equal_pieces(lengths: list[float], piece_m: float) -> None:
+    gen = torch.Generator().manual_seed(len(lengths))
+    start = torch.rand(len(lengths), 2, generator=gen, dtype=torch.float64) * 100
+    angle = torch.rand(len(lengths), generator=gen, dtype=torch.float64) * 2 * math.pi
+    end = start + torch.tensor(lengths, dtype=torch.float64)[:, None] * torch.stack([angle.cos(), angle.sin()], -1)
+    pieces = line_pieces(torch.stack([start, end], 1), piece_m)
+    i = 0
+    for n, length in enumerate((end - start).norm(dim=-1).tolist()):
+        k = math.ceil(length / piece_m)
+        mine = pieces[i : i + k]
+        i += k
+        torch.testing.assert_close(mine[0, 0], start[n])
+        torch.testing.assert_close(mine[-1, 1], end[n])
+        torch.testing.assert_close(mine[1:, 0], mine[:-1, 1])  # contiguous
+        piece_len = (mine[:, 1] - mine[:, 0]).norm(dim=-1)
+        assert bool((piece_len <= piece_m + 1e-9).all())
+        torch.testing.assert_close(piece_len, torch.full_like(piece_len, length / k))
+    assert i == len(pieces)
 
 
 def test_alignment_score_equals_a_per_pose_loop_with_padding() -> None:
     gen = torch.Generator().manual_seed(3)
-    cfg = VerificationConfig(line_distance_m=3.0, line_angle_deg=30.0, point_distance_m=4.0)
+    cfg = VerificationConfig(line_distance_m=3.0, line_angle_deg=30.0, point_distance_m=4.0, line_piece_m=3.0)
     ground = _random_set(gen, 6, 9)
     patches = [_random_set(gen, n_p, n_l) for n_p, n_l in [(8, 15), (2, 4), (0, 7)]]  # unequal sizes: padding
     # Poses near the identity, so that some primitives do land on others.
@@ -117,7 +144,9 @@ def test_reweighting_ranks_by_mass_times_alignment_and_keeps_the_mass() -> None:
     out = reweight_hypotheses(_hypotheses(T, mass, valid), ground, stack_primitive_sets([aerial]), cfg, 3)
     assert out.t[0, :, 1].tolist() == [20.0, 20.5, 0.0]
     assert out.probability.sum().item() == pytest.approx(0.8)  # total mass kept
-    assert out.probability[0, 0].item() == pytest.approx(0.8 * 2 / 3)
+    # alignment 10 m at 20 m, 10 m x (1 - 0.5^2 / 1.5^2) half a metre off it
+    a0, a1 = 10.0, 10.0 * (1 - 0.5**2 / cfg.line_distance_m**2)
+    assert out.probability[0, 0].item() == pytest.approx(0.8 * 0.2 * a0 / (0.2 * a0 + 0.1 * a1))
     assert out.probability[0, 2].item() == 0.0
     assert out.objective[0].tolist() == [1.0, 2.0, 0.0]  # every field follows the new order
 

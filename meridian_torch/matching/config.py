@@ -277,7 +277,11 @@ class VerificationConfig(StrictModel):
     exp_registration.py, 256 particles, seed 0): ranking the 50 heaviest clusters by mass x alignment
     instead of mass alone gave unknown-rotation top-1 / 25 = 29 / 54 % instead of 12 / 54 %, known
     rotation 42 / 83 % instead of 37 / 83 %. The tolerances are first choices (the matching sigmas'
-    scale), not tuned.
+    scale), not tuned. Scoring ground lines in pieces of at most 4 m, each graded by closeness,
+    instead of whole lines all-or-nothing: demo top-1 (mean of seeds 0-2) 35 -> 40 % known
+    rotation, 26 -> 32 % unknown; in the demo run the final pass's top-1 50 -> 67 % of submaps at
+    the same final ATE (0.64 -> 0.67 m; ungraded pieces: 63 % but 0.82 m); KITTI 00 / 09 within
+    one submap; +6 % matching time (2 m pieces: same quality, +22 %).
     """
 
     enabled: bool = Field(
@@ -286,10 +290,18 @@ class VerificationConfig(StrictModel):
     candidates: int = Field(
         default=50, ge=1, description="clusters per patch verified (heaviest first); at least hypotheses_per_patch"
     )
-    line_distance_m: float = Field(default=1.5, gt=0, description="a ground line's midpoint within this of an aerial line")
-    line_angle_deg: float = Field(default=10.0, gt=0, le=90, description="... and its direction within this angle")
-    point_distance_m: float = Field(default=2.0, gt=0, description="a ground point within this of an aerial point")
-    point_weight_m: float = Field(default=5.0, ge=0, description="a matched point counts as this much line length")
+    line_piece_m: float = Field(
+        default=4.0, gt=0, description="ground lines are scored in equal pieces of at most this length"
+    )
+    line_distance_m: float = Field(
+        default=1.5, gt=0,
+        description="a ground line piece counts less the farther its midpoint lies from an aerial line, nothing beyond this",
+    )
+    line_angle_deg: float = Field(default=10.0, gt=0, le=90, description="only aerial lines within this angle of the piece count")
+    point_distance_m: float = Field(
+        default=2.0, gt=0, description="a ground point counts less the farther it lies from an aerial point, nothing beyond this"
+    )
+    point_weight_m: float = Field(default=5.0, ge=0, description="a point exactly on an aerial point counts as this much line length")
     chunk_pairs: int = Field(
         default=8_000_000,
         ge=1,

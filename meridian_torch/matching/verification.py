@@ -2,11 +2,16 @@
 
 A hypothesis comes from a few associations (3-6 on rendered submaps, where about 2 % of the
 putative associations are true), so its particle mass says little about the rest of the submap.
-Its alignment does: moved by T_world_odom, a ground line counts with its length when it lies on
-an aerial line of the patch (directions within `line_angle_deg`, its midpoint within
-`line_distance_m` of the aerial line's segment between its endpoints), and a ground point counts
-`point_weight_m` when an aerial point is within `point_distance_m`. Descriptors play no part:
-this is the check the sparse, descriptor-driven associations cannot make.
+Its alignment does: moved by T_world_odom, each ground line is cut into equal pieces of at most
+`line_piece_m`, and a piece counts its length x (1 - d^2 / line_distance_m^2), d the distance of
+its midpoint to the nearest aerial line of the patch whose direction is within `line_angle_deg`
+(to that line's segment between its endpoints); a ground point counts
+point_weight_m x (1 - d^2 / point_distance_m^2), d the distance to the nearest aerial point.
+Beyond the distances nothing counts. Pieces, not whole lines, so that a road border shifted past
+the end of its aerial counterpart (a junction, a building corner) loses the part that
+overhangs; graded, not all-or-nothing, so that of two poses laying the same lines on the map
+the closer one wins. Descriptors play no part: this is the check the sparse, descriptor-driven
+associations cannot make.
 
 `reweight_hypotheses` turns the alignment into the ranking: probability = particle mass x
 alignment, rescaled so a patch keeps the total mass it had (probabilities still sum to <= 1).
@@ -23,7 +28,7 @@ from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["alignment_score", "reweight_hypotheses"]
+__all__ = ["alignment_score", "line_pieces", "reweight_hypotheses"]
 
 
 def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
@@ -33,10 +38,24 @@ def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
     return (a + t.clamp(0.0, 1.0)[:, None] * ab - p).square().sum(-1)
 
 
+def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
+    """(N, 2, 2) segments -> (Q, 2, 2): each cut into ceil(length / piece_m) equal pieces, in order."""
+    length = (endpoints[:, 1] - endpoints[:, 0]).norm(dim=-1)
+    count = torch.ceil(length / piece_m).clamp_min(1).long()
+    line = torch.repeat_interleave(torch.arange(len(endpoints), device=endpoints.device), count)
+    first = torch.cumsum(count, 0) - count
+    j = torch.arange(len(line), device=endpoints.device) - first[line]
+    a, b = endpoints[line, 0], endpoints[line, 1]
+    k = count[line].to(endpoints.dtype)
+    f0 = (j.to(endpoints.dtype) / k)[:, None]
+    f1 = ((j + 1).to(endpoints.dtype) / k)[:, None]
+    return torch.stack([a + f0 * (b - a), a + f1 * (b - a)], 1)
+
+
 def alignment_score(
     T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
 ) -> Tensor:
-    """(P, H) alignment (metres of ground line + weighted points) of H poses per patch.
+    """(P, H) alignment (closeness-weighted metres of ground line + weighted points) of H poses per patch.
 
     Args:
         T_world_odom: (P, H, 3, 3) poses mapping ground odom x-y into the world, per patch.
@@ -50,10 +69,11 @@ def alignment_score(
     score = T_world_odom.new_zeros(T_world_odom.shape[:2])
     cos_min = math.cos(math.radians(config.line_angle_deg))
     if len(ground.line_endpoints) and aerial.line_endpoints.shape[1]:
-        d = ground.line_endpoints[:, 1] - ground.line_endpoints[:, 0]  # (N, 2)
+        pieces = line_pieces(ground.line_endpoints, config.line_piece_m)
+        d = pieces[:, 1] - pieces[:, 0]  # (N, 2)
         length = d.norm(dim=-1)
         u = d / length[:, None].clamp_min(1e-12)
-        mid = torch.einsum("phij,nj->phni", R, ground.line_endpoints.mean(1)) + t[:, :, None]  # (P, H, N, 2)
+        mid = torch.einsum("phij,nj->phni", R, pieces.mean(1)) + t[:, :, None]  # (P, H, N, 2)
         u_world = torch.einsum("phij,nj->phni", R, u)
         A = aerial.line_endpoints.to(dtype)  # (P, M, 2, 2)
         ad = A[:, :, 1] - A[:, :, 0]
@@ -63,15 +83,17 @@ def alignment_score(
         # Distances only for the near-parallel triples (a small share): index them instead of
         # broadcasting (P, H, N, M, 2) temporaries.
         p_i, h_i, n_i, m_i = parallel.nonzero(as_tuple=True)
-        near = _squared_segment_distance(mid[p_i, h_i, n_i], A[p_i, m_i, 0], A[p_i, m_i, 1]) <= config.line_distance_m**2
-        on_line = torch.zeros(parallel.shape[:3], dtype=torch.bool, device=device)
-        on_line[p_i[near], h_i[near], n_i[near]] = True
-        score = score + (on_line.to(dtype) * length).sum(-1)
+        d2 = _squared_segment_distance(mid[p_i, h_i, n_i], A[p_i, m_i, 0], A[p_i, m_i, 1])
+        closeness = (1.0 - d2 / config.line_distance_m**2).clamp_min(0.0)
+        P_, H_, N_ = parallel.shape[:3]
+        key = (p_i * H_ + h_i) * N_ + n_i
+        on_line = closeness.new_zeros(P_ * H_ * N_).scatter_reduce(0, key, closeness, "amax").reshape(P_, H_, N_)
+        score = score + (on_line * length).sum(-1)
     if len(ground.points_xy) and aerial.points_xy.shape[1]:
         p = torch.einsum("phij,nj->phni", R, ground.points_xy) + t[:, :, None]  # (P, H, N, 2)
         dist2 = (p[:, :, :, None] - aerial.points_xy.to(dtype)[:, None, None]).square().sum(-1)
-        near = (dist2 <= config.point_distance_m**2) & aerial.point_valid[:, None, None, :]
-        score = score + config.point_weight_m * near.any(-1).to(dtype).sum(-1)
+        closeness = (1.0 - dist2 / config.point_distance_m**2).clamp_min(0.0) * aerial.point_valid[:, None, None, :]
+        score = score + config.point_weight_m * closeness.amax(-1).sum(-1)
     return score
 
 
@@ -110,7 +132,7 @@ def reweight_hypotheses(
     if n_hypotheses > h.valid.shape[1]:
         raise ValueError(f"n_hypotheses = {n_hypotheses} > the {h.valid.shape[1]} hypotheses given per patch")
     mass = torch.where(h.valid, h.probability, 0.0)
-    n_ground = max(len(ground.line_endpoints), len(ground.points_xy), 1)
+    n_ground = max(len(line_pieces(ground.line_endpoints, config.line_piece_m)), len(ground.points_xy), 1)
     n_aerial = max(aerial.line_endpoints.shape[1], aerial.points_xy.shape[1], 1)
     chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * n_aerial))
     score = torch.cat(
