@@ -102,6 +102,34 @@ class PrimitiveBatch:
             index = index.to(self.points_xy.device)
         return PrimitiveBatch(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
+    def used_lengths(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P,) int64 point and line axis lengths each patch uses: up to its last valid entry."""
+
+        def used(valid: torch.Tensor) -> torch.Tensor:
+            last = valid * torch.arange(1, valid.shape[1] + 1, device=valid.device)
+            return torch.cat([last.new_zeros(len(valid), 1), last], 1).amax(1)
+
+        return used(self.point_valid), used(self.line_valid)
+
+    def trimmed(self) -> "PrimitiveBatch":
+        """The same patches without the padding none of them uses: the point and line axes end
+        at the last valid entry of any patch (one entry stays when there were any, so padded
+        indices remain addressable). Unified indices (lines after points, see `Associations`)
+        shift with the point axis."""
+        n_p, n_l = (
+            max(int(used.max()) if len(used) else 0, min(1, valid.shape[1]))
+            for used, valid in zip(self.used_lengths(), (self.point_valid, self.line_valid))
+        )
+        return PrimitiveBatch(
+            points_xy=self.points_xy[:, :n_p],
+            point_descriptors=self.point_descriptors[:, :n_p],
+            point_valid=self.point_valid[:, :n_p],
+            line_endpoints=self.line_endpoints[:, :n_l],
+            line_kinds=self.line_kinds[:, :n_l],
+            line_descriptors=self.line_descriptors[:, :n_l],
+            line_valid=self.line_valid[:, :n_l],
+        )
+
     def unbatch(self, index: int) -> PrimitiveSet:
         """The index-th set without padding (segment ids are not kept in batches: -1)."""
         pv, lv = self.point_valid[index], self.line_valid[index]

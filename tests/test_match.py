@@ -199,13 +199,25 @@ def test_match_arrays_several_empty_patches() -> None:
     assert hyp.valid.shape == (9, 25) and not hyp.valid.any()
 
 
-def test_patch_chunking_does_not_change_results() -> None:
+def _sized(ps: PrimitiveSet, n_points: int, n_lines: int) -> PrimitiveSet:
+    return PrimitiveSet(ps.points_xy[:n_points], ps.point_descriptors[:n_points], torch.arange(n_points),
+                        ps.line_endpoints[:n_lines], ps.line_kinds[:n_lines], ps.line_descriptors[:n_lines],
+                        torch.arange(n_lines))
+
+
+@pytest.mark.parametrize("prior", [None, YAW])
+def test_patch_chunking_does_not_change_results(prior: float | None) -> None:
+    # Chunks take patches by size and drop the padding none of their patches uses, so the
+    # patches here differ in size, and some have no points or no lines.
     torch.set_num_threads(1)
     ground, patches, _, _ = scene()
-    batch = stack_primitive_sets(patches)
+    batch = stack_primitive_sets([_sized(patches[1], 5, 0), patches[0], _sized(patches[2], 0, 3), patches[2],
+                                  _sized(patches[1], 12, 9)])
     cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=16, n_iterations=60, max_associations=24)})
-    one = match_submap(ground, batch, config=cfg.model_copy(update={"patch_chunk": 1}), generator=torch.Generator().manual_seed(4))
-    all_ = match_submap(ground, batch, config=cfg.model_copy(update={"patch_chunk": 8}), generator=torch.Generator().manual_seed(4))
-    assert torch.equal(one.valid, all_.valid) and torch.equal(one.association_mask, all_.association_mask)
-    torch.testing.assert_close(one.T_world_odom, all_.T_world_odom)
-    torch.testing.assert_close(one.probability, all_.probability)
+    runs = [match_submap(ground, batch, rotation_prior=prior, config=cfg.model_copy(update={"patch_chunk": chunk}),
+                         generator=torch.Generator().manual_seed(4)) for chunk in (1, 2, 8)]
+    assert runs[0].valid[1].any() and not runs[0].valid.all()
+    for other in runs[1:]:
+        assert torch.equal(runs[0].valid, other.valid) and torch.equal(runs[0].association_mask, other.association_mask)
+        torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
+        torch.testing.assert_close(runs[0].probability, other.probability)

@@ -165,14 +165,17 @@ def test_reweighting_keeps_masses_when_nothing_aligns_and_checks_the_count() -> 
 
 
 def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
+    # Chunks take patches by size and drop unused padding: sizes differ, one patch has no points.
     gen = torch.Generator().manual_seed(5)
     ground = _random_set(gen, 4, 6)
-    aerial = stack_primitive_sets([_random_set(gen, 5, 8) for _ in range(3)])
-    T = se2_matrix((torch.rand(3, 6, generator=gen, dtype=torch.float64) - 0.5) * 0.2,
-                   (torch.rand(3, 6, 2, generator=gen, dtype=torch.float64) - 0.5) * 6)
-    mass = torch.rand(3, 6, generator=gen, dtype=torch.float64) / 6
-    h = _hypotheses(T, mass, torch.rand(3, 6, generator=gen) > 0.2)
-    one_patch = reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=1), 4)
-    all_patches = reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0), 4)
-    torch.testing.assert_close(one_patch.probability, all_patches.probability)
-    torch.testing.assert_close(one_patch.T_world_odom, all_patches.T_world_odom)
+    aerial = stack_primitive_sets([_random_set(gen, n_p, n_l) for n_p, n_l in ((5, 8), (0, 3), (9, 2), (2, 12))])
+    T = se2_matrix((torch.rand(4, 6, generator=gen, dtype=torch.float64) - 0.5) * 0.2,
+                   (torch.rand(4, 6, 2, generator=gen, dtype=torch.float64) - 0.5) * 6)
+    mass = torch.rand(4, 6, generator=gen, dtype=torch.float64) / 6
+    h = _hypotheses(T, mass, torch.rand(4, 6, generator=gen) > 0.2)
+    runs = [reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=c), 4)
+            for c in (1, 6 * 14 * 12 * 2, 10**6)]
+    assert not torch.allclose(runs[-1].probability, h.probability[:, :4])
+    for other in runs[1:]:
+        torch.testing.assert_close(runs[0].probability, other.probability)
+        torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)

@@ -41,10 +41,23 @@ def _clipper_sets(M: Tensor, valid: Tensor, config: MatchConfig, generator: torc
     )
 
 
-def _slice_associations(assoc: Associations, part: slice) -> Associations:
-    return dataclasses.replace(
-        assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part], cosine=assoc.cosine[part]
+def _patch_chunk(assoc: Associations, aerial: PrimitiveBatch, part: Tensor) -> tuple[Associations, PrimitiveBatch]:
+    """Patches `part` without the padding none of them uses, their associations re-indexed to
+    the trimmed point axis (aerial line indices are offset by it). Scores are unchanged: only
+    unused padding goes, and the (patch, line, line) tables shrink to the chunk's largest patch."""
+    aerial_part = aerial.select(part).trimmed()
+    pairs, valid, is_line = assoc.pairs[part], assoc.valid[part], assoc.is_line[part]
+    shift = assoc.n_aerial_points - int(aerial_part.points_xy.shape[1])
+    aerial_index = torch.where(valid & is_line, pairs[..., 1] - shift, pairs[..., 1])
+    assoc_part = dataclasses.replace(
+        assoc,
+        pairs=torch.stack([pairs[..., 0], aerial_index], -1),
+        is_line=is_line,
+        valid=valid,
+        cosine=assoc.cosine[part],
+        n_aerial_points=int(aerial_part.points_xy.shape[1]),
     )
+    return assoc_part, aerial_part
 
 
 def _concat_sets(chunks: list[InlierSets]) -> InlierSets:
@@ -63,6 +76,18 @@ def _concat_sets(chunks: list[InlierSets]) -> InlierSets:
         valid=torch.cat([pad(c.valid) for c in chunks]),
         iterations=torch.cat([c.iterations for c in chunks]),
         n_particles=chunks[0].n_particles,
+    )
+
+
+def _take_patches(sets: InlierSets, index: Tensor) -> InlierSets:
+    """The patches `index` of `sets`, in that order."""
+    return dataclasses.replace(
+        sets,
+        masks=sets.masks[index],
+        counts=sets.counts[index],
+        objective=sets.objective[index],
+        valid=sets.valid[index],
+        iterations=sets.iterations[index],
     )
 
 
@@ -108,17 +133,20 @@ def match_submap(
         sets = _clipper_sets(M, assoc.valid, cfg, generator)
     else:
         # Seeds are drawn per patch up front, so a patch's result is the same in any chunking.
+        # Chunks take patches by size (most lines first), so each chunk's tables are padded
+        # only to patches like its own.
         seeds = patch_seeds(len(aerial), generator)
+        by_size = torch.argsort(aerial.used_lengths()[1], descending=True, stable=True)
         chunks = []
         for c0 in range(0, len(aerial), cfg.patch_chunk):
-            part = slice(c0, c0 + cfg.patch_chunk)
-            assoc_c, aerial_c = _slice_associations(assoc, part), aerial.select(part)
+            part = by_size[c0 : c0 + cfg.patch_chunk]
+            assoc_c, aerial_c = _patch_chunk(assoc, aerial, part)
             M = affinity_entries(
                 ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
             )
             chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
             del M
-        sets = _concat_sets(chunks)
+        sets = _take_patches(_concat_sets(chunks), torch.argsort(by_size))
     verify = cfg.verification
     hypotheses = cluster_hypotheses(
         sets,

@@ -125,22 +125,24 @@ def reweight_hypotheses(
 
     Probabilities become mass x alignment rescaled to the patch's total mass over the H inputs
     (so they still sum to <= 1); a patch whose hypotheses all align nowhere keeps its masses.
-    Alignment is computed a few patches at a time, about `config.chunk_pairs` (pose, ground
-    primitive, aerial primitive) triples per chunk (memory).
+    Alignment is computed a few patches of similar size at a time, about `config.chunk_pairs`
+    (pose, ground primitive, aerial primitive) triples per chunk (memory).
     """
     h = hypotheses
     if n_hypotheses > h.valid.shape[1]:
         raise ValueError(f"n_hypotheses = {n_hypotheses} > the {h.valid.shape[1]} hypotheses given per patch")
     mass = torch.where(h.valid, h.probability, 0.0)
     n_ground = max(len(line_pieces(ground.line_endpoints, config.line_piece_m)), len(ground.points_xy), 1)
-    n_aerial = max(aerial.line_endpoints.shape[1], aerial.points_xy.shape[1], 1)
-    chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * n_aerial))
-    score = torch.cat(
-        [
-            alignment_score(h.T_world_odom[c : c + chunk], ground, aerial.select(slice(c, c + chunk)), config)
-            for c in range(0, len(aerial), chunk)
-        ]
-    ) if len(aerial) else mass.clone()
+    # Patches by size (largest first) so that each chunk is padded only to patches like its own.
+    size = torch.maximum(*aerial.used_lengths()).clamp_min(1).tolist()
+    by_size = sorted(range(len(aerial)), key=lambda p: -size[p])
+    score = mass.new_zeros(mass.shape)
+    c0 = 0
+    while c0 < len(by_size):
+        chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * size[by_size[c0]]))
+        part = torch.tensor(by_size[c0 : c0 + chunk], device=mass.device)
+        score[part] = alignment_score(h.T_world_odom[part], ground, aerial.select(part).trimmed(), config)
+        c0 += chunk
     weight = mass * score
     total_weight = weight.sum(1, keepdim=True)
     probability = torch.where(
