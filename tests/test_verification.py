@@ -174,7 +174,7 @@ def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
     mass = torch.rand(4, 6, generator=gen, dtype=torch.float64) / 6
     h = _hypotheses(T, mass, torch.rand(4, 6, generator=gen) > 0.2)
     runs = [reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=c), 4)
-            for c in (1, 6 * 14 * 12 * 2, 10**6)]
+            for c in (1, 6 * 14 * 12 * 2, 10**6)]  # one patch, about two, all per chunk
     assert not torch.allclose(runs[-1].probability, h.probability[:, :4])
     for other in runs[1:]:
         torch.testing.assert_close(runs[0].probability, other.probability)
