@@ -134,13 +134,13 @@ def reweight_hypotheses(
     mass = torch.where(h.valid, h.probability, 0.0)
     n_ground = max(len(line_pieces(ground.line_endpoints, config.line_piece_m)), len(ground.points_xy), 1)
     # Patches by size (largest first) so that each chunk is padded only to patches like its own.
-    size = torch.maximum(*aerial.used_lengths()).clamp_min(1).tolist()
-    by_size = sorted(range(len(aerial)), key=lambda p: -size[p])
+    size = torch.maximum(*aerial.used_lengths()).clamp_min(1)
+    by_size = torch.argsort(size, descending=True, stable=True)
     score = mass.new_zeros(mass.shape)
     c0 = 0
     while c0 < len(by_size):
-        chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * size[by_size[c0]]))
-        part = torch.tensor(by_size[c0 : c0 + chunk], device=mass.device)
+        chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * int(size[by_size[c0]])))
+        part = by_size[c0 : c0 + chunk]
         score[part] = alignment_score(h.T_world_odom[part], ground, aerial.select(part).trimmed(), config)
         c0 += chunk
     weight = mass * score
