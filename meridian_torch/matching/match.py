@@ -41,21 +41,28 @@ def _clipper_sets(M: Tensor, valid: Tensor, config: MatchConfig, generator: torc
     )
 
 
+def _offset_aerial_lines(pairs: Tensor, old: int, new: Tensor | int) -> Tensor:
+    """(P, m, 2) pairs with aerial line indices counted from `new` points instead of `old` (the
+    padded point count; `new` per patch (P,) or one int). Points and padding (-1) stay."""
+    aerial_index = pairs[..., 1]
+    new = torch.as_tensor(new, device=pairs.device).reshape(-1, 1)
+    aerial_index = torch.where(aerial_index >= old, aerial_index - old + new, aerial_index)
+    return torch.stack([pairs[..., 0], aerial_index], dim=-1)
+
+
 def _patch_chunk(assoc: Associations, aerial: PrimitiveBatch, part: Tensor) -> tuple[Associations, PrimitiveBatch]:
     """Patches `part` without the padding none of them uses, their associations re-indexed to
     the trimmed point axis (aerial line indices are offset by it). Scores are unchanged: only
     unused padding goes, and the (patch, line, line) tables shrink to the chunk's largest patch."""
     aerial_part = aerial.select(part).trimmed()
-    pairs, valid, is_line = assoc.pairs[part], assoc.valid[part], assoc.is_line[part]
-    shift = assoc.n_aerial_points - int(aerial_part.points_xy.shape[1])
-    aerial_index = torch.where(valid & is_line, pairs[..., 1] - shift, pairs[..., 1])
+    n_points = int(aerial_part.points_xy.shape[1])
     assoc_part = dataclasses.replace(
         assoc,
-        pairs=torch.stack([pairs[..., 0], aerial_index], -1),
-        is_line=is_line,
-        valid=valid,
+        pairs=_offset_aerial_lines(assoc.pairs[part], assoc.n_aerial_points, n_points),
+        is_line=assoc.is_line[part],
+        valid=assoc.valid[part],
         cosine=assoc.cosine[part],
-        n_aerial_points=int(aerial_part.points_xy.shape[1]),
+        n_aerial_points=n_points,
     )
     return assoc_part, aerial_part
 
@@ -315,8 +322,6 @@ def match_arrays(
     hypotheses = match_submap(_with_dim(ground, dim), aerial, rotation_prior=prior, config=config, generator=generator)
     # Internally aerial line j of every patch is (padded point count) + j; a caller indexes each
     # patch's own arrays: (its number of points) + j.
-    padded = aerial.points_xy.shape[1]
-    n_points = torch.tensor([p[0].shape[0] for p in patches], device=hypotheses.pairs.device)
-    aerial_index = hypotheses.pairs[..., 1]
-    aerial_index = torch.where(aerial_index >= padded, aerial_index - padded + n_points[:, None], aerial_index)
-    return dataclasses.replace(hypotheses, pairs=torch.stack([hypotheses.pairs[..., 0], aerial_index], dim=-1))
+    n_points = torch.tensor([p[0].shape[0] for p in patches])
+    pairs = _offset_aerial_lines(hypotheses.pairs, int(aerial.points_xy.shape[1]), n_points)
+    return dataclasses.replace(hypotheses, pairs=pairs)
