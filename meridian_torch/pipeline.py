@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from meridian_torch.backend.localizer import LocalizationResult, Localizer, LocalizerEvent
 from meridian_torch.config import MeridianConfig
+from meridian_torch.core.timing import stage
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.ground_map import GroundMapper
@@ -69,25 +70,30 @@ def localize_sequence(
     def localize(new: list[GroundSubmap], available_time: float) -> None:
         for submap in new:
             submaps.append(submap)
-            event = localizer.add_submap(submap, available_time=available_time)
+            with stage("localization"):
+                event = localizer.add_submap(submap, available_time=available_time)
             if on_submap is not None:
                 on_submap(submap, event)
 
     for start in range(0, n, batch):
         t0 = time.perf_counter()
-        frames = [reader[i] for i in range(start, min(start + batch, n))]
-        new = mapper.add_frames(frames)
+        with stage("read frames"):
+            frames = [reader[i] for i in range(start, min(start + batch, n))]
+        with stage("ground mapping"):
+            new = mapper.add_frames(frames)
         mapping_s += time.perf_counter() - t0
         localize(new, frames[-1].timestamp)
         if on_frames is not None:
             on_frames(start + len(frames), n)
     t0 = time.perf_counter()
-    last = mapper.finish()
+    with stage("ground mapping"):
+        last = mapper.finish()
     mapping_s += time.perf_counter() - t0
     localize(last, float(times[-1]))
     if on_stage is not None:
         on_stage("final optimization")
-    result = localizer.finalize()
+    with stage("final pass"):
+        result = localizer.finalize()
     seconds = {"ground_mapping": mapping_s, **result.timings}
     seconds["total"] = time.perf_counter() - started
     return SequenceRun(

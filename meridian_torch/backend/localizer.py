@@ -37,6 +37,7 @@ from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
 from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph
 from meridian_torch.config import MeridianConfig
+from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.map_file import AerialMap
@@ -133,8 +134,8 @@ class _Timer:
         default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
     )
 
-    def add(self, stage: str, start: float) -> None:
-        self.seconds[stage] += time.perf_counter() - start
+    def add(self, name: str, start: float) -> None:
+        self.seconds[name] += time.perf_counter() - start
 
 
 class Localizer:
@@ -215,11 +216,12 @@ class Localizer:
         if len(patches) == 0:
             return LoopClosureCandidates.empty()
         start = time.perf_counter()
-        aerial = self.aerial_map.primitives.select(patches)
-        ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
-        hyps = self._matcher(
-            ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator
-        )
+        with stage("matching"):
+            aerial = self.aerial_map.primitives.select(patches)
+            ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
+            hyps = self._matcher(
+                ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator
+            )
         self._timer.add("matching", start)
         return candidates_from_hypotheses(
             hyps, submap, patches, min_associations=self.cfg.backend.min_associations
@@ -262,16 +264,18 @@ class Localizer:
     # ------------------------------------------------------------------ solving
     def _inliers(self, candidates: LoopClosureCandidates) -> InlierSelection:
         start = time.perf_counter()
-        sel = select_inliers(candidates, self.cfg.backend, self._clipper_generator)
+        with stage("consistency"):
+            sel = select_inliers(candidates, self.cfg.backend, self._clipper_generator)
         self._timer.add("consistency", start)
         return sel
 
     def _pool_inliers(self) -> InlierSelection:
         """CLIPPER on the pool, scoring only the pairs of candidates appended since the last call."""
         start = time.perf_counter()
-        sel = select_inliers(
-            self.pool, self.cfg.backend, self._clipper_generator, known_edges=self._pool_edges
-        )
+        with stage("consistency"):
+            sel = select_inliers(
+                self.pool, self.cfg.backend, self._clipper_generator, known_edges=self._pool_edges
+            )
         self._pool_edges = (len(self.pool), sel.edges)
         self._timer.add("consistency", start)
         return sel
@@ -292,9 +296,10 @@ class Localizer:
         # Move each measurement from the submap time to its node's frame time along the odometry.
         T_world_odom = inliers.T_world_base.numpy() @ np.linalg.inv(inliers.T_odom_base.numpy())
         priors = T_world_odom @ self._odom_se2[nodes]
-        sol = optimize_pose_graph(
-            self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance
-        )
+        with stage("pose graph"):
+            sol = optimize_pose_graph(
+                self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance
+            )
         self._timer.add("pose_graph", start)
         return sol
 
@@ -356,7 +361,8 @@ class Localizer:
         n_nodes = self._node_of(available_time) + 1
         attempted = committed = False
         if self.state == "pre":
-            patches = self._place_recognition_patches(submap)
+            with stage("place recognition"):
+                patches = self._place_recognition_patches(submap)
             new = self._match(submap, patches, None)
             self.submap_hypotheses[submap.index] = new
             self.submap_matching_mode[submap.index] = "place_recognition"

@@ -1,0 +1,1 @@
+"""Foundations every layer may import: nothing here imports another meridian_torch package."""

@@ -1,0 +1,382 @@
+#!/usr/bin/env python
+"""End-to-end speed of the online pipeline: frames/s, real-time factor, peak memory, time per stage.
+
+Runs `localize_sequence` (ground mapping frame by frame, every submap localized as it appears,
+then the final offline pass) on one sequence folder and prints:
+- frames/s and the real-time factor (sequence duration / wall time), online (frames and submaps
+  as they come) and in total (with the final pass);
+- the peak resident memory of the process;
+- seconds per stage and sub-stage (perception, 3D observations, tracking, submaps, place
+  recognition, associations, affinity, particles, registration, verification, consistency,
+  pose graph, ...), as recorded by `meridian_torch.core.timing`;
+- the final and incremental ATE when the sequence has ground truth, so that speed and accuracy
+  are read together.
+
+Each measurement runs in a fresh child process, so that its peak memory is its own.
+`--baseline-src DIR` runs the same measurement on another source tree (e.g. a git worktree of an
+older commit: `git worktree add /tmp/base <commit>`) right after, and prints both side by side;
+the older tree may lack the sub-stage timings. `--passes N` replays the drive N times, forward
+and backward in turn (a physically continuous drive of N times the length: the robot retraces
+its path), to show that memory and frames/s do not depend on how long it drives.
+`--profile FILE` writes a cProfile of the run (open with `python -m pstats FILE` or snakeviz);
+`--torch-profile FILE` a torch.profiler Chrome trace.
+
+Timings are noisy on shared machines: the load average before each run is printed with it.
+
+Example:
+    python scripts/bench_localize.py /work/runs/kitti09-7hz -c configs/kitti09.yaml --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+RESULT_TAG = "BENCH_LOCALIZE_RESULT "
+REPO = Path(__file__).resolve().parents[1]
+
+# Stages in the order of the data flow; sub-stages are printed under the stage they ran in.
+STAGE_ORDER = (
+    "read frames", "ground mapping", "perception", "segmentation", "segment descriptors", "global descriptors",
+    "observations", "tracking", "submaps", "localization", "place recognition", "matching", "associations",
+    "affinity", "particles", "registration", "clustering", "verification", "consistency", "pose graph",
+    "final pass",
+)
+
+
+# ---------------------------------------------------------------------------------- the drive
+
+
+@dataclass(frozen=True)
+class _ReplayedFrame:
+    index: int
+    timestamp: float
+    rgb: object
+    depth: object
+    T_odom_base: object
+
+
+class ReplayedSequence:
+    """A sequence driven `passes` times, forward and backward in turn, with increasing times.
+
+    Frame k of pass p is the recorded frame i (i = k forward, n - 1 - k backward; the turning
+    frame is not repeated), shown at a time that grows by the recorded frame spacing. Odometry
+    and ground truth are the recorded poses of the frames shown, so the drive is physically
+    continuous: the robot retraces its path.
+    """
+
+    def __init__(self, reader, passes: int) -> None:
+        import numpy as np
+
+        from meridian_torch.geometry.trajectory import Trajectory
+
+        self.reader = reader
+        n = len(reader)
+        order = [np.arange(n)]
+        for p in range(1, passes):
+            step = np.arange(n - 2, -1, -1) if p % 2 else np.arange(1, n)
+            order.append(step)
+        self.order = np.concatenate(order)
+        t = reader.frame_times
+        dt = np.diff(t)
+        steps = [dt] + [dt[::-1] if p % 2 else dt for p in range(1, passes)]
+        self.frame_times = t[0] + np.concatenate([[0.0], np.cumsum(np.concatenate(steps))])
+        self.camera = reader.camera
+        self._odom = reader.T_odom_base[self.order]
+        self.odometry = Trajectory(self.frame_times, self._odom)
+        gt = reader.groundtruth
+        self.groundtruth = None if gt is None else Trajectory(self.frame_times, gt.interpolate(t)[self.order])
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def __getitem__(self, k: int):
+        frame = self.reader[int(self.order[k])]
+        return _ReplayedFrame(k, float(self.frame_times[k]), frame.rgb, frame.depth, self._odom[k])
+
+    def ortho(self):
+        return self.reader.ortho()
+
+
+# ---------------------------------------------------------------------------------- one run
+
+
+def _load_average() -> float:
+    return os.getloadavg()[0]
+
+
+def run_child(args: argparse.Namespace) -> dict:
+    """One measurement in this process (the child)."""
+    import torch
+
+    from meridian_torch.config import load_config
+    from meridian_torch.io.map_file import load_aerial_map
+    from meridian_torch.io.sequence import SequenceReader
+    from meridian_torch.mapping.aerial_map import build_map_file, map_config_dict
+    from meridian_torch.pipeline import localize_sequence
+    from meridian_torch.runtime import current_rss_mib, peak_rss_mib, resolve_runtime
+
+    try:  # absent in source trees older than the stage timings
+        from meridian_torch.core.timing import record_stages
+    except ImportError:
+        record_stages = None
+
+    cfg = load_config(args.config, args.overrides)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    runtime = resolve_runtime(cfg.runtime)
+    reader = SequenceReader(args.sequence)
+    map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
+    if args.map is not None and args.map.exists():
+        aerial_map = load_aerial_map(args.map, expected_config=map_config)
+    else:
+        from meridian_torch.config import config_key
+
+        path = args.map or Path(args.sequence) / f"aerial-{config_key(map_config)}.mtm"
+        aerial_map = (load_aerial_map(path, expected_config=map_config) if path.exists() else
+                      build_map_file(Path(args.sequence), path, cfg.aerial_map, cfg.perception, cfg.primitives))
+    source = reader if args.passes == 1 else ReplayedSequence(reader, args.passes)
+    if args.frames:
+        source = _FirstFrames(source, args.frames)
+
+    rss_before = current_rss_mib()
+    load = _load_average()
+    profiler = None
+    if args.profile:
+        import cProfile
+
+        profiler = cProfile.Profile()
+    stage_times = None
+    online_end: list[float] = []
+    started = time.perf_counter()
+
+    def on_stage(name: str) -> None:
+        online_end.append(time.perf_counter())
+
+    def go():
+        return localize_sequence(source, aerial_map, cfg, runtime, on_stage=on_stage)
+
+    def profiled():
+        if profiler is None:
+            return go()
+        profiler.enable()
+        try:
+            return go()
+        finally:
+            profiler.disable()
+            profiler.dump_stats(args.profile)
+
+    if args.torch_profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU]) as tp:
+            run, stage_times = _with_stages(record_stages, profiled)
+        tp.export_chrome_trace(str(args.torch_profile))
+    else:
+        run, stage_times = _with_stages(record_stages, profiled)
+    wall = time.perf_counter() - started
+    online = (online_end[0] if online_end else time.perf_counter()) - started
+
+    metrics = None
+    if source.groundtruth is not None:
+        metrics = _metrics(run, source, cfg)
+    n = len(source)
+    duration = float(source.frame_times[-1] - source.frame_times[0])
+    return {
+        "source": str(Path(sys.modules["meridian_torch"].__file__).parent.parent),
+        "frames": n,
+        "submaps": len(run.submaps),
+        "duration_s": duration,
+        "wall_s": wall,
+        "online_s": online,
+        "frames_per_s": n / wall,
+        "rtf_online": duration / online,
+        "rtf_total": duration / wall,
+        "peak_rss_mib": peak_rss_mib(),
+        "rss_before_mib": rss_before,
+        "load_average": load,
+        "threads": torch.get_num_threads(),
+        "pipeline_seconds": run.seconds,
+        # a source tree without stage marks records nothing: report its pipeline seconds only
+        "stages": {"seconds": stage_times.seconds, "calls": stage_times.calls} if stage_times and stage_times.calls
+        else None,
+        "localized": bool(run.result.localized),
+        "fix_submap": run.result.fix_submap_index,
+        "metrics": metrics,
+    }
+
+
+class _FirstFrames:
+    """The first `n` frames of a sequence."""
+
+    def __init__(self, source, n: int) -> None:
+        self.source, self.n = source, min(n, len(source))
+        self.frame_times = source.frame_times[: self.n]
+        self.camera, self.odometry, self.groundtruth = source.camera, source.odometry, source.groundtruth
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: int):
+        if k >= self.n:
+            raise IndexError(k)
+        return self.source[k]
+
+    def ortho(self):
+        return self.source.ortho()
+
+
+def _with_stages(record_stages, fn):
+    if record_stages is None:
+        return fn(), None
+    with record_stages() as times:
+        run = fn()
+    return run, times
+
+
+def _metrics(run, source, cfg) -> dict:
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.io.results import write_outputs
+
+    with tempfile.TemporaryDirectory() as tmp:
+        write_outputs(tmp, run.result, crs=None)
+        m = evaluate_run(tmp, source.groundtruth, cfg.evaluation)
+    final, inc = m.get("final") or {}, m.get("incremental") or {}
+    return {
+        "ate_final_m": final.get("ate_rmse_m"),
+        "ate_incremental_m": inc.get("ate_rmse_m"),
+        "fraction_localized": m.get("fraction_localized"),
+        "first_fix_m": m.get("distance_to_first_fix_m"),
+    }
+
+
+# ---------------------------------------------------------------------------------- reporting
+
+
+def _stage_rows(result: dict) -> list[tuple[str, float, int]]:
+    """(indented name, seconds, calls) in data-flow order, children under their parents."""
+    stages = result.get("stages")
+    if not stages:
+        return [(name, s, 0) for name, s in result["pipeline_seconds"].items() if name != "total"]
+    seconds, calls = stages["seconds"], stages["calls"]
+
+    def key(path: str) -> tuple:
+        parts = path.split("/")
+        return tuple(STAGE_ORDER.index(p) if p in STAGE_ORDER else len(STAGE_ORDER) for p in parts)
+
+    rows = []
+    for path in sorted(seconds, key=key):
+        depth = path.count("/")
+        rows.append(("  " * depth + path.rsplit("/", 1)[-1], seconds[path], calls[path]))
+    return rows
+
+
+def report(results: list[tuple[str, dict]]) -> str:
+    def fmt(v, spec=".2f", unit=""):
+        return "-" if v is None else f"{v:{spec}}{unit}"
+
+    head = "| | " + " | ".join(label for label, _ in results) + " |"
+    sep = "|---|" + "---|" * len(results)
+    lines = [head, sep]
+    rows = [
+        ("frames / submaps", lambda r: f"{r['frames']} / {r['submaps']}"),
+        ("sequence duration", lambda r: fmt(r["duration_s"], ".1f", " s")),
+        ("wall time (online + final pass)", lambda r: f"{r['online_s']:.1f} + {r['wall_s'] - r['online_s']:.1f} s"),
+        ("frames/s (total)", lambda r: fmt(r["frames_per_s"], ".1f")),
+        ("real-time factor online / total", lambda r: f"{r['rtf_online']:.2f} / {r['rtf_total']:.2f}"),
+        ("peak RSS", lambda r: fmt(r["peak_rss_mib"], ".0f", " MiB")),
+        ("localized (fix at submap)", lambda r: f"{'yes' if r['localized'] else 'no'} ({r['fix_submap']})"),
+        ("ATE incremental / final", lambda r: "-" if not r["metrics"] else
+            f"{fmt(r['metrics']['ate_incremental_m'])} / {fmt(r['metrics']['ate_final_m'])} m"),
+        ("load average before, threads", lambda r: f"{r['load_average']:.2f}, {r['threads']}"),
+    ]
+    for stage in results[0][1]["pipeline_seconds"]:
+        if stage != "total":
+            rows.append((f"{stage} (s)", lambda r, k=stage: fmt(r["pipeline_seconds"].get(k), ".1f")))
+    for name, f in rows:
+        lines.append(f"| {name} | " + " | ".join(f(r) for _, r in results) + " |")
+    lines.append("")
+    for label, r in results:
+        lines.append(f"time per stage, {label} ({r['source']}):")
+        lines.append("| stage | s | % of wall | calls | ms per call |")
+        lines.append("|---|---|---|---|---|")
+        for name, s, calls in _stage_rows(r):
+            per = f"{1000 * s / calls:.1f}" if calls else "-"
+            lines.append(f"| {name} | {s:.1f} | {100 * s / r['wall_s']:.0f} | {calls or '-'} | {per} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _child_argv(args: argparse.Namespace, profile: bool) -> list[str]:
+    """The child's command line: this measurement's options (profiles only for this tree)."""
+    argv = [str(args.sequence), "-c", str(args.config), "--threads", str(args.threads), "--passes", str(args.passes)]
+    for item in args.overrides:
+        argv += ["--set", item]
+    for flag, value in (("--map", args.map), ("--frames", args.frames)):
+        if value is not None:
+            argv += [flag, str(value)]
+    if profile:
+        for flag, value in (("--profile", args.profile), ("--torch-profile", args.torch_profile)):
+            if value is not None:
+                argv += [flag, str(value)]
+    return argv + ["--child"]
+
+
+def _child(argv: list[str], source: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(source) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), *argv], env=env, stdout=subprocess.PIPE,
+                          text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"bench_localize: the run on {source} failed (exit {proc.returncode})")
+    line = next(x for x in proc.stdout.splitlines() if x.startswith(RESULT_TAG))
+    return json.loads(line[len(RESULT_TAG):])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sequence", type=Path, help="sequence folder")
+    p.add_argument("-c", "--config", type=Path, default=REPO / "configs" / "default.yaml",
+                   help="config the sequence belongs to (its map is built with it)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")
+    p.add_argument("--map", type=Path, default=None,
+                   help="aerial map file (default: SEQUENCE/aerial-<config key>.mtm, built when missing)")
+    p.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    p.add_argument("--frames", type=int, default=None, help="only the first N frames")
+    p.add_argument("--passes", type=int, default=1, help="drive the sequence N times, forward and back (memory runs)")
+    p.add_argument("--baseline-src", type=Path, default=None,
+                   help="also run the source tree DIR (e.g. a worktree of an older commit) and compare")
+    p.add_argument("--profile", type=Path, default=None, help="write a cProfile of the run to FILE")
+    p.add_argument("--torch-profile", type=Path, default=None, help="write a torch.profiler Chrome trace to FILE")
+    p.add_argument("--json", type=Path, default=None, help="also write the results to FILE")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    if args.child:
+        print(RESULT_TAG + json.dumps(run_child(args), default=float), flush=True)
+        return 0
+    if not (args.sequence / "ground").is_dir():
+        raise SystemExit(f"bench_localize: {args.sequence} is not a sequence folder (no ground/)")
+    results = [("this tree", _child(_child_argv(args, profile=True), REPO))]
+    if args.baseline_src is not None:
+        results.append(("baseline", _child(_child_argv(args, profile=False), args.baseline_src.resolve())))
+    print(report(results))
+    if args.json is not None:
+        args.json.write_text(json.dumps(dict(results), indent=2, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
