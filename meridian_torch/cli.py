@@ -528,7 +528,10 @@ def export_onnx(
 
 
 ManifestOption = Annotated[
-    Path | None, typer.Option("--manifest", help="Model manifest (default: models/manifest.yaml).", dir_okay=False)
+    Path | None,
+    typer.Option("--manifest", dir_okay=False, help="Model manifest, files beside it (default: the models folder's "
+                 "manifest.yaml, else the shipped one; the models folder is $MERIDIAN_TORCH_MODELS, the checkout's "
+                 "models/ or ~/.local/share/meridian-torch/models)."),
 ]
 
 
@@ -571,7 +574,9 @@ def models_verify(
         typer.echo(f"{r.entry.name:24s} {r.status:17s} {detail}")
     checked = [r for r in results if names or r.status != "missing"]
     if not checked:
-        typer.echo(f"no model files in {m.folder} (see {m.folder / 'README.md'})")
+        from meridian_torch.core.paths import shipped_dir
+
+        typer.echo(f"no model files in {m.folder} (see {shipped_dir('models') / 'README.md'})")
     failed = [r.entry.name for r in checked if r.failed]
     if failed:
         typer.echo(f"error: {', '.join(failed)} failed verification", err=True)

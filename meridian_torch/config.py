@@ -15,6 +15,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
+from meridian_torch.core.paths import shipped_dir
 from meridian_torch.errors import ConfigError
 from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.matching.config import ClipperConfig, MatchConfig
@@ -42,7 +43,7 @@ __all__ = [
     "config_key",
 ]
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = shipped_dir("configs")  # the checkout's configs/, or a wheel's bundled copy
 
 
 class RuntimeConfig(StrictModel):

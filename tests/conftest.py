@@ -1,7 +1,9 @@
-"""Shared fixtures: `--runslow` gates end-to-end tests; `shared_data` locates ../shared/data.
+"""Shared fixtures: `--runslow` gates end-to-end tests; `shared_data` locates ../shared/data;
+`--torch-threads N` runs the suite with N torch threads (CI runs it with 1 and with 2).
 
 Property tests draw the same examples on every run (hypothesis `derandomize`), so CI results
-are reproducible; `--hypothesis-profile=default --hypothesis-seed=N` explores other examples.
+are reproducible; `--hypothesis-profile=default` draws fresh ones, as a nightly job would, and
+`--hypothesis-seed=N` with it replays such a run.
 """
 
 from __future__ import annotations
@@ -24,6 +26,16 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
+    parser.addoption("--torch-threads", type=int, default=None, help="torch intra-op threads for the whole run")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    threads = config.getoption("--torch-threads")
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)  # for child processes
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from meridian_torch.cli import app
 from meridian_torch.errors import ConfigError
-from meridian_torch.export.manifest import MODELS_DIR, load_manifest, verify_models
+from meridian_torch.core.paths import MODELS_ENV, models_dir, shipped_dir
+from meridian_torch.export.manifest import load_manifest, verify_models
 
 runner = CliRunner()
 
@@ -24,13 +25,13 @@ def test_shipped_manifest_lists_every_model_family() -> None:
     assert expected <= names
     assert len({e.file for e in m.entries}) == len(m.entries)
     assert all(e.source.startswith("http") and e.license for e in m.entries)
-    assert m.folder == MODELS_DIR and (MODELS_DIR / "README.md").is_file()
+    assert m.folder == models_dir() and (shipped_dir("models") / "README.md").is_file()
 
 
 @pytest.fixture
 def manifest_copy(tmp_path: Path) -> Path:
     path = tmp_path / "manifest.yaml"
-    shutil.copy(MODELS_DIR / "manifest.yaml", path)
+    shutil.copy(shipped_dir("models") / "manifest.yaml", path)
     return path
 
 
@@ -102,3 +103,20 @@ def test_cli_list_and_verify(manifest_copy: Path) -> None:
     file.write_bytes(b"v2")
     result = runner.invoke(app, ["models", "verify", "--manifest", str(manifest_copy)])
     assert result.exit_code == 1 and "mismatch" in result.output
+
+
+def test_a_models_folder_without_a_manifest_records_into_its_own_copy(tmp_path: Path, monkeypatch) -> None:
+    """As after `pip install .`: the shipped manifest is read, files and records live in the models folder."""
+    folder = tmp_path / "my-models"
+    monkeypatch.setenv(MODELS_ENV, str(folder))
+    shipped = shipped_dir("models") / "manifest.yaml"
+    before = shipped.read_text()
+    m = load_manifest()
+    assert m.path == shipped and m.folder == folder
+    folder.mkdir()
+    (folder / m.entry("fastsam_s").file).write_bytes(b"export s")
+    assert {r.entry.name: r.status for r in verify_models(m, record=True)}["fastsam_s"] == "recorded"
+    assert shipped.read_text() == before, "the shipped manifest is never written"
+    own = load_manifest()
+    assert own.path == folder / "manifest.yaml" and own.folder == folder
+    assert own.entry("fastsam_s").sha256 == hashlib.sha256(b"export s").hexdigest()

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from meridian_torch.cli import app
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.io.poses import read_tum
 from meridian_torch.io.sequence import check_sequence
 from meridian_torch.sim.simulate import simulate_sequence
 
@@ -108,12 +109,24 @@ def test_check_cli_on_simulated_sequence(tiny_sequence: Path) -> None:
 
 
 @pytest.mark.slow
-def test_demo_runs_end_to_end(tmp_path: Path) -> None:
-    result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")])
-    assert result.exit_code == 0, result.output
-    out = tmp_path / "out"
+def test_demo_runs_end_to_end_with_the_same_trajectory_on_1_and_2_threads(tmp_path: Path) -> None:
+    """The demo as a user runs it; a seeded run gives the same trajectories whatever the thread
+    count (sums may be reassociated across threads, so to 1 mm rather than bitwise)."""
+    cache = tmp_path / "cache"
+    runs = {}
+    for threads in (2, 1):
+        out = tmp_path / f"out-{threads}"
+        result = CliRunner().invoke(app, ["demo", "--out", str(out), "--cache-dir", str(cache),
+                                          "--set", f"runtime.num_threads={threads}"])
+        assert result.exit_code == 0, result.output
+        runs[threads] = out
+    out = runs[2]
     for name in ("preview.png", "config.yaml", "aerial_map.png", "report.md", "metrics.json", "submaps.csv"):
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_submaps"] >= 10 and metrics["n_frames"] > 300
     assert "ATE final" in result.output and "demo finished" in result.output
+    for name in ("trajectory.tum", "trajectory_incremental.tum"):
+        two, one = read_tum(runs[2] / name), read_tum(runs[1] / name)
+        assert np.array_equal(two.timestamps, one.timestamps), name
+        assert np.abs(two.poses[:, :3, 3] - one.poses[:, :3, 3]).max() < 1e-3, name

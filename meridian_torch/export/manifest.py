@@ -1,10 +1,13 @@
 """The local model manifest (`models/manifest.yaml`): which files exist, where users get them, their hashes.
 
+The manifest in use is the one in the user's models folder (`core.paths.models_dir`) when it has
+one, else the one shipped with the package; model files are looked up in the models folder.
 Nothing is downloaded. `verify_models` hashes the files present and tells apart: ok, missing,
 mismatch (the file differs from the recorded sha256) and "no hash recorded" (the manifest has
 null, as shipped, since the official files cannot be hashed offline). With `record=True` the
 hashes of present files without one are written into the manifest (recorded hashes are never
-overwritten: a mismatch stays an error until the user edits the manifest).
+overwritten: a mismatch stays an error until the user edits the manifest); an installed package's
+shipped manifest is first copied into the models folder, which then holds the user's record.
 """
 
 from __future__ import annotations
@@ -20,21 +23,20 @@ from typing import Literal
 import yaml
 from pydantic import Field, ValidationError
 
+from meridian_torch.core.paths import models_dir, shipped_dir
 from meridian_torch.errors import ConfigError, ModelWeightsError
 from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.sim.config import StrictModel
 
 __all__ = [
-    "MODELS_DIR",
     "ModelEntry",
     "Manifest",
     "VerifyResult",
+    "default_manifest_path",
     "load_manifest",
     "sha256_file",
     "verify_models",
 ]
-
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 
 Status = Literal["ok", "missing", "mismatch", "no hash recorded", "recorded"]
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
@@ -58,12 +60,9 @@ class _ManifestFile(StrictModel):
 
 @dataclass(frozen=True)
 class Manifest:
-    path: Path
+    path: Path  # the manifest file
     entries: tuple[ModelEntry, ...]
-
-    @property
-    def folder(self) -> Path:
-        return self.path.parent
+    folder: Path  # where the model files are
 
     def entry(self, name: str) -> ModelEntry:
         for e in self.entries:
@@ -85,9 +84,17 @@ class VerifyResult:
         return self.status in ("missing", "mismatch")
 
 
+def default_manifest_path() -> Path:
+    """The models folder's manifest when it has one, else the shipped manifest."""
+    own = models_dir() / "manifest.yaml"
+    return own if own.is_file() else shipped_dir("models") / "manifest.yaml"
+
+
 def load_manifest(path: str | os.PathLike[str] | None = None) -> Manifest:
-    """Read and validate a manifest (default: models/manifest.yaml at the repository top)."""
-    path = Path(path) if path is not None else MODELS_DIR / "manifest.yaml"
+    """Read and validate a manifest: `path` (its files beside it), or the default (files in the
+    models folder, see the module docstring)."""
+    folder = Path(path).parent if path is not None else models_dir()
+    path = Path(path) if path is not None else default_manifest_path()
     if not path.is_file():
         raise ConfigError(f"model manifest not found: {path}")
     try:
@@ -100,7 +107,7 @@ def load_manifest(path: str | os.PathLike[str] | None = None) -> Manifest:
     names = [e.name for e in data.models]
     if duplicates := sorted({n for n in names if names.count(n) > 1}):
         raise ConfigError(f"{path}: duplicate model names {duplicates}")
-    return Manifest(path, tuple(data.models))
+    return Manifest(path, tuple(data.models), folder)
 
 
 def sha256_file(path: str | os.PathLike[str], progress: Callable[[int, int], None] | None = None) -> str:
@@ -117,8 +124,14 @@ def sha256_file(path: str | os.PathLike[str], progress: Callable[[int, int], Non
 
 
 def _record(manifest: Manifest, hashes: dict[str, str]) -> None:
-    """Replace `sha256: null` of the named entries in the manifest text (keeps its comments)."""
+    """Replace `sha256: null` of the named entries in the manifest text (keeps its comments); a
+    manifest outside the models folder (the shipped one) is copied there first."""
     text = manifest.path.read_text()
+    if manifest.path.parent.resolve() != manifest.folder.resolve():
+        manifest.folder.mkdir(parents=True, exist_ok=True)
+        manifest = Manifest(manifest.folder / "manifest.yaml", manifest.entries, manifest.folder)
+        if manifest.path.exists():
+            raise ConfigError(f"{manifest.path} exists and is not the manifest in use; pass it with --manifest")
     for name, digest in hashes.items():
         pattern = re.compile(rf"(-\s+name:\s*{re.escape(name)}\s*\n(?:[ \t]+(?!-)[^\n]*\n)*?[ \t]+sha256:\s*)null\b")
         text, count = pattern.subn(rf"\g<1>{digest}", text, count=1)
