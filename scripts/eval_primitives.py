@@ -168,6 +168,7 @@ def evaluate(name: str, mapper: AerialMapper, crop_m: float | None, margin_m: fl
     amap = build_aerial_map(ortho, mapper)
     t_map = time.perf_counter() - t0
     points, segments, n_unbounded = batch_primitives(amap.primitives)
+    points, segments = points + amap.local_origin_xy, segments + amap.local_origin_xy  # map frame -> world
     region = extent(ortho)
     row = {"dataset": name, "size_m": f"{region[1] - region[0]:.0f}x{region[3] - region[2]:.0f}",
            "patches": len(amap.patches), "load_s": t_load, "map_s": t_map, "unbounded_lines": n_unbounded}

@@ -255,9 +255,10 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
     tally = Tally()
     t0 = time.perf_counter()
     for submap in submaps:
-        T_world_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
-        T_true = true_T_world_odom(T_world_base, submap.T_odom_base)
-        index = containing_patch(aerial_map.patches.centres_xy, aerial_map.patches.bounds_xy, T_world_base[:2, 3])
+        T_map_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
+        T_map_base[:2, 3] -= aerial_map.local_origin_xy  # the map's coordinates are relative to it
+        T_true = true_T_world_odom(T_map_base, submap.T_odom_base)
+        index = containing_patch(aerial_map.patches.centres_xy, aerial_map.patches.bounds_xy, T_map_base[:2, 3])
         if index is None:
             continue
         tally.n += 1

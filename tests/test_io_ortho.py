@@ -117,13 +117,38 @@ def test_missing_aerial_image_and_json(tmp_path: Path) -> None:
     assert "ortho.json: file not found" in check_orthophoto(tmp_path)[0]
 
 
-def test_geotiff_round_trip(tmp_path: Path) -> None:
-    ortho = make_ortho()
+# Projected CRSs of real orthophotos, with a corner where such an orthophoto would be: UTM north
+# and south, Swiss LV95 (7-digit eastings), British National Grid, Web Mercator.
+PROJECTED = [
+    ("EPSG:32632", (457944.9, 5429415.0)),
+    ("EPSG:32755", (334000.0, 5812000.0)),
+    ("EPSG:2056", (2600000.0, 1200000.0)),
+    ("EPSG:27700", (530000.0, 180000.0)),
+    ("EPSG:3857", (950000.0, 6000000.0)),
+]
+
+
+@pytest.mark.parametrize("crs, origin", PROJECTED)
+def test_geotiff_round_trip(tmp_path: Path, crs: str, origin: tuple[float, float]) -> None:
+    ortho = Orthophoto(make_ortho().image, 0.3, origin, crs)
     write_geotiff(tmp_path / "aerial" / "ortho.tif", ortho)
     back = read_orthophoto(tmp_path)
     np.testing.assert_array_equal(back.image, ortho.image)
-    assert (back.meters_per_pixel, back.origin_xy, back.crs) == (0.3, ortho.origin_xy, "EPSG:32632")
+    assert (back.meters_per_pixel, back.origin_xy, back.crs) == (0.3, origin, crs)
     assert check_orthophoto(tmp_path) == []
+
+
+@pytest.mark.parametrize("crs, origin", PROJECTED)
+def test_latlon_outputs_agree_with_pyproj(crs: str, origin: tuple[float, float]) -> None:
+    from pyproj import Transformer
+
+    from meridian_torch.io.results import to_latlon
+
+    xy = np.asarray(origin) + np.random.default_rng(0).uniform(-5000.0, 5000.0, (50, 2))
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(xy[:, 0], xy[:, 1])
+    latlon = to_latlon(xy, crs)
+    np.testing.assert_allclose(latlon[:, 0], lat, atol=1e-9, rtol=0)  # 1e-9 deg: 0.1 mm
+    np.testing.assert_allclose(latlon[:, 1], lon, atol=1e-9, rtol=0)
 
 
 def test_geotiff_uint16_grey_stretch_and_nodata(tmp_path: Path) -> None:

@@ -39,6 +39,7 @@ def _map() -> AerialMap:
         crs="EPSG:32632",
         config={"aerial_map": {"patch_size_m": 60.0}},
         backends={"segmenter": "classical"},
+        local_origin_xy=(460000.0, 5430000.0),
     )
 
 
@@ -52,6 +53,7 @@ def test_round_trip(tmp_path: Path) -> None:
     assert np.array_equal(loaded.patches.bounds_xy, original.patches.bounds_xy)
     assert torch.equal(loaded.global_descriptors, original.global_descriptors)
     assert (loaded.crs, loaded.origin_xy, loaded.image_size) == ("EPSG:32632", (500.0, 900.0), (400, 300))
+    assert loaded.local_origin_xy == (460000.0, 5430000.0)
     assert not list(tmp_path.glob(".*")), "no temporary files left behind"
 
 
@@ -81,9 +83,20 @@ def test_other_version_and_config_are_refused(tmp_path: Path, monkeypatch: pytes
     save_aerial_map(_map(), path)
     with pytest.raises(MapFileError, match=r"aerial_map\.patch_size_m"):
         load_aerial_map(path, expected_config={"aerial_map": {"patch_size_m": 40.0}})
-    monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 2)
-    with pytest.raises(MapFileError, match="format version 1"):
+    monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 3)
+    save_aerial_map(_map(), path)
+    with pytest.raises(MapFileError, match="format version 3"):
         load_aerial_map(path)
+
+
+def test_version_1_files_are_read_in_world_coordinates(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Version 1 maps had no local origin: their coordinates are world coordinates."""
+    path = tmp_path / "m.mtm"
+    monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 1)
+    monkeypatch.setattr(map_file, "_header", lambda m, header=map_file._header: {
+        **header(m), "georeference": {k: v for k, v in header(m)["georeference"].items() if k != "local_origin"}})
+    save_aerial_map(_map(), path)  # its local origin is not stored by version 1
+    assert load_aerial_map(path).local_origin_xy == (0.0, 0.0)
 
 
 def test_map_config_ignores_options_of_unused_back_ends() -> None:

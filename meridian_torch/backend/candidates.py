@@ -8,7 +8,7 @@ reference's "frequency-ratio" (fact sheet 5.1, 5.2). Poses are float64 (3, 3) SE
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -50,6 +50,13 @@ class LoopClosureCandidates:
     def select(self, index: Tensor) -> LoopClosureCandidates:
         """The candidates at `index` (bool mask or int64 indices)."""
         return LoopClosureCandidates(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    def translated(self, dxy: tuple[float, float]) -> LoopClosureCandidates:
+        """The same candidates with their world positions moved by `dxy` (change of world origin)."""
+        T = self.T_world_base.clone()
+        T[:, 0, 2] += dxy[0]
+        T[:, 1, 2] += dxy[1]
+        return replace(self, T_world_base=T)
 
     @staticmethod
     def concat(parts: list[LoopClosureCandidates]) -> LoopClosureCandidates:

@@ -19,6 +19,10 @@ at that frame's time) carried forward by odometry. `finalize` solves the final p
 every frame and, with `final_rematch`, re-matches every submap with the rotation prior near that
 trajectory (offline pass 2), keeping pass 2 when it passes the fix gate.
 
+Positions are worked in the aerial map's frame (world minus `aerial_map.local_origin_xy`, small
+numbers that float32 matching keeps exact); every result is returned in world coordinates
+(float64), whatever the size of the georeference's coordinates.
+
 Output poses are SE(3): the optimized planar correction T_world_odom(t) (x, y, yaw) composed
 with the full odometry pose, so z, roll and pitch are the odometry's.
 """
@@ -186,6 +190,7 @@ class Localizer:
         self._generator = torch.Generator(device=device).manual_seed(seed)
         self._clipper_generator = torch.Generator().manual_seed(seed)
         self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
+        self._local_origin_xy = tuple(float(v) for v in aerial_map.local_origin_xy)
         self.submaps: list[GroundSubmap] = []
         self._nodes: list[int] = []  # pose-graph node (frame) of every submap
         self.submap_hypotheses: dict[int, LoopClosureCandidates] = {}
@@ -428,7 +433,13 @@ class Localizer:
         ok = which >= 0
         anchors = np.stack([u.T_world_odom for u in self._updates])[which[ok]]
         out[ok] = lift_se2(anchors @ self._odom_se2[ok], self.T_odom_base[ok])
-        return out
+        return self._to_world(out)
+
+    def _to_world(self, T_map_base: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) poses in the map frame -> world (float64; NaN rows stay NaN)."""
+        T_world_base = np.array(T_map_base, dtype=np.float64)
+        T_world_base[:, :2, 3] += self._local_origin_xy
+        return T_world_base
 
     def finalize(self, progress: Callable[[str], None] | None = None) -> LocalizationResult:
         """Final solve over every frame (+ pass 2 re-match when `backend.final_rematch`)."""
@@ -461,18 +472,19 @@ class Localizer:
             inliers = LoopClosureCandidates.empty()
             T_final = np.full((n, 4, 4), np.nan)
             cov = None
+        origin = self._local_origin_xy
         return LocalizationResult(
             frame_times=self.frame_times,
-            T_world_base=T_final,
+            T_world_base=self._to_world(T_final),
             covariance=cov,
             T_world_base_incremental=self.online_estimate(),
             localized=localized,
-            inliers=inliers,
+            inliers=inliers.translated(origin),
             fix_submap_index=self.fix_submap_index,
             fix_time=self.fix_time,
-            submap_hypotheses=dict(self.submap_hypotheses),
+            submap_hypotheses={k: c.translated(origin) for k, c in self.submap_hypotheses.items()},
             submap_matching_mode=dict(self.submap_matching_mode),
-            final_hypotheses=fresh,
+            final_hypotheses=fresh.translated(origin),
             events=list(self.events),
             timings=dict(self._timer.seconds),
         )

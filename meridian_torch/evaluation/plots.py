@@ -25,7 +25,11 @@ def _pyplot():
 
 
 def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Path, *, clusters: int = 8) -> Path:
-    """Primitives over the orthophoto (world metres), coloured by descriptor cluster, with the patch grid."""
+    """Primitives over the orthophoto, coloured by descriptor cluster, with the patch grid.
+
+    Axes are metres in the map frame; with a local origin (projected CRS) the labels say which
+    world coordinate their zero is, so UTM-sized numbers do not crowd the ticks.
+    """
     plt = _pyplot()
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Rectangle
@@ -37,7 +41,8 @@ def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Pa
     _, labels = cosine_kmeans(desc.float(), clusters, generator=torch.Generator().manual_seed(0))
     colours = plt.get_cmap("tab10")(labels.numpy() % 10)
 
-    x_min, y_max = aerial_map.origin_xy
+    local_x, local_y = aerial_map.local_origin_xy
+    x_min, y_max = aerial_map.origin_xy[0] - local_x, aerial_map.origin_xy[1] - local_y
     width, height = aerial_map.image_size
     extent = (x_min, x_min + width * aerial_map.meters_per_pixel, y_max - height * aerial_map.meters_per_pixel, y_max)
     size = 12.0 * np.array([1.0, (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)])
@@ -51,8 +56,8 @@ def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Pa
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_aspect("equal")
-    ax.set_xlabel("x east (m)")
-    ax.set_ylabel("y north (m)")
+    ax.set_xlabel("x east (m)" + (f" - {local_x:.0f}" if local_x else ""))
+    ax.set_ylabel("y north (m)" + (f" - {local_y:.0f}" if local_y else ""))
     ax.set_title(f"aerial map: {len(aerial_map)} patches, {len(points)} points, {len(lines)} lines "
                  f"(colour = descriptor cluster)")
     return save_figure_atomic(fig, out_png)

@@ -3,18 +3,22 @@
 A `.mtm` file is a zip archive (numpy `.npz` layout) holding:
 - `header.json` (stored as a uint8 array): `format` = "meridian-torch aerial map",
   `format_version`, `package_version`, `georeference` (meters_per_pixel, origin [x0, y0],
-  crs, image_size [width, height]), `config` (the resolved config blocks that shaped the map),
+  crs, image_size [width, height], local_origin [x, y]: the world position of the map frame's
+  origin, version 2 on), `config` (the resolved config blocks that shaped the map),
   `backends` (segmenter / describer names), `source` (orthophoto path and sha256),
   `content_hash` (sha256 over the rest of the header and every array);
 - padded per-patch arrays, P patches:
   `patch_pixel_boxes (P, 4) int64` col0, row0, col1, row1 in the orthophoto;
-  `patch_grid_index (P, 2) int64`; `patch_bounds_xy (P, 4) float64` world x_min, x_max, y_min, y_max;
+  `patch_grid_index (P, 2) int64`; `patch_bounds_xy (P, 4) float64` x_min, x_max, y_min, y_max;
   `patch_centres_xy (P, 2) float64`;
   `points_xy (P, Np, 2)`, `point_descriptors (P, Np, D)`, `point_valid (P, Np) bool`;
   `line_endpoints (P, Nl, 2, 2)`, `line_kinds (P, Nl) int64` (0 segment, 1 ray, 2 infinite),
   `line_descriptors (P, Nl, D)`, `line_valid (P, Nl) bool`;
   `global_descriptors (P, Dg)`.
-All coordinates are world metres (x east, y north). Files are written atomically.
+All coordinates are metres (x east, y north) in the map frame: world minus `local_origin`, so
+that float32 arrays stay exact to the millimetre in a projected CRS (UTM northings are ~5e6 m).
+Version 1 files (world coordinates, no local origin) are read with a local origin of (0, 0).
+Files are written atomically.
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ from meridian_torch.types import PrimitiveBatch
 __all__ = ["MAP_FORMAT", "MAP_FORMAT_VERSION", "AerialMap", "MapFileError", "save_aerial_map", "load_aerial_map"]
 
 MAP_FORMAT = "meridian-torch aerial map"
-MAP_FORMAT_VERSION = 1
+MAP_FORMAT_VERSION = 2
+_READABLE_VERSIONS = (1, 2)  # version 1: world coordinates = map frame
 
 _PRIMITIVE_FIELDS = (
     "points_xy", "point_descriptors", "point_valid",
@@ -52,13 +57,14 @@ class AerialMap:
     primitives: PrimitiveBatch
     global_descriptors: torch.Tensor  # (P, Dg)
     meters_per_pixel: float
-    origin_xy: tuple[float, float]
+    origin_xy: tuple[float, float]  # world x, y of the orthophoto's top-left corner
     image_size: tuple[int, int]  # (width, height) of the orthophoto in pixels
     crs: str | None = None
     config: dict[str, Any] = field(default_factory=dict)
     backends: dict[str, str] = field(default_factory=dict)
     source: dict[str, str] = field(default_factory=dict)
     content_hash: str = ""
+    local_origin_xy: tuple[float, float] = (0.0, 0.0)  # world x, y of the map frame's origin
 
     def __len__(self) -> int:
         return len(self.patches)
@@ -84,6 +90,7 @@ def _header(aerial_map: AerialMap) -> dict[str, Any]:
             "origin": list(aerial_map.origin_xy),
             "crs": aerial_map.crs,
             "image_size": list(aerial_map.image_size),
+            "local_origin": [float(v) for v in aerial_map.local_origin_xy],
         },
         "config": aerial_map.config,
         "backends": aerial_map.backends,
@@ -109,7 +116,7 @@ def _config_differences(stored: Any, expected: Any, prefix: str = "") -> list[st
 
 def load_aerial_map(path: Path, expected_config: dict[str, Any] | None = None) -> AerialMap:
     """Read and verify a map file; `expected_config` (if given) must equal the stored config."""
-    header, arrays = read_container(path, MAP_FORMAT, MAP_FORMAT_VERSION, MapFileError, "aerial map file", "rebuild the map")
+    header, arrays = read_container(path, MAP_FORMAT, _READABLE_VERSIONS, MapFileError, "aerial map file", "rebuild the map")
     if expected_config is not None:
         diffs = _config_differences(header["config"], expected_config)
         if diffs:
@@ -132,4 +139,5 @@ def load_aerial_map(path: Path, expected_config: dict[str, Any] | None = None) -
         backends=header["backends"],
         source=header["source"],
         content_hash=header["content_hash"],
+        local_origin_xy=tuple(float(v) for v in geo.get("local_origin", (0.0, 0.0))),
     )

@@ -44,9 +44,11 @@ def write_container(path: Path, fmt: str, version: int, header: dict[str, Any], 
 
 
 def read_container(
-    path: Path, fmt: str, version: int, error: type[MeridianError], what: str, redo: str
+    path: Path, fmt: str, version: int | tuple[int, ...], error: type[MeridianError], what: str, redo: str
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """(header, arrays) of a verified file; problems raise `error` naming `path`.
+
+    `version` is the format version this package reads, or a tuple of the versions it reads.
 
     `what` names the file kind in messages ("aerial map file"), `redo` what the user should do
     about an old or corrupted file ("rebuild the map").
@@ -65,10 +67,11 @@ def read_container(
         raise error(f"{path}: missing or unreadable header.json") from None
     if header.get("format") != fmt:
         raise error(f"{path}: not a meridian-torch {what} (format {header.get('format')!r})")
-    if header.get("format_version") != version:
+    readable = version if isinstance(version, tuple) else (version,)
+    if header.get("format_version") not in readable:
         raise error(
             f"{path}: {what} format version {header.get('format_version')} (written by meridian-torch "
-            f"{header.get('package_version')}), this version reads {version}; {redo}"
+            f"{header.get('package_version')}), this version reads {' or '.join(map(str, readable))}; {redo}"
         )
     if content_hash(header, arrays) != header.get("content_hash"):
         raise error(f"{path}: content hash mismatch, the file is corrupted; {redo}")

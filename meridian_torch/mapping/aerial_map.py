@@ -4,6 +4,11 @@ Resumable: every finished patch is stored in a work folder next to the output (o
 per patch, keyed by the orthophoto's and the config's hashes), so an interrupted build continues
 where it stopped; the folder is removed once the map file is written.
 
+Map frame: every coordinate in the map (patch bounds, primitives) is in metres relative to a
+local origin near the orthophoto (`map_frame_origin`), so that float32 tensors keep millimetres
+and polygon operations stay robust when the orthophoto is georeferenced in a projected CRS with
+coordinates like (458000, 5429000); `AerialMap.local_origin_xy` (float64) converts back.
+
 Parallel: with `aerial_map.workers` > 1 the patch batches are described in that many worker
 processes (CPU only). Classical segmentation and segment -> primitive conversion are
 single-threaded Python/NumPy, so processes, not torch threads, are what use a second core.
@@ -37,7 +42,20 @@ from meridian_torch.perception.factory import build_global_describer, build_segm
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.types import PrimitiveSet, stack_primitive_sets
 
-__all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict"]
+__all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict", "map_frame_origin"]
+
+_LOCAL_ORIGIN_STEP_M = 10_000.0  # round numbers, and 0 for every orthophoto within 5 km of its CRS origin
+
+
+def map_frame_origin(ortho: Orthophoto) -> tuple[float, float]:
+    """World x, y of the map frame's origin: the orthophoto's corner rounded to 10 km."""
+    return tuple(float(np.round(v / _LOCAL_ORIGIN_STEP_M) * _LOCAL_ORIGIN_STEP_M) for v in ortho.origin_xy)
+
+
+def _corner_in_map_frame(ortho: Orthophoto) -> tuple[float, float]:
+    """The orthophoto's top-left corner in the map frame (float64)."""
+    local = map_frame_origin(ortho)
+    return ortho.origin_xy[0] - local[0], ortho.origin_xy[1] - local[1]
 
 
 def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig) -> dict[str, Any]:
@@ -109,8 +127,8 @@ class AerialMapper:
         for k, (b, col0, row0) in enumerate(crop_origin_px):
             masks = seg.masks[k][seg.valid[k]]
             h, w = masks.shape[-2:]
-            # Mask pixel centres in world metres (FORMAT.md pixel-centre convention).
-            x0, y0 = ortho.origin_xy
+            # Mask pixel centres in map-frame metres (FORMAT.md pixel-centre convention).
+            x0, y0 = _corner_in_map_frame(ortho)
             idx_m, rows, cols = torch.nonzero(masks, as_tuple=True)
             xy = np.stack([
                 x0 + (col0 + cols.cpu().numpy() + 0.5) * mpp,
@@ -202,7 +220,7 @@ def build_aerial_map(
     progress: Callable[[int, int], None] | None = None,
 ) -> AerialMap:
     """Build the aerial map of `ortho`. With `work_dir`, finished patches are kept there and reused."""
-    grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, ortho.origin_xy,
+    grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, _corner_in_map_frame(ortho),
                       mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
     results: dict[int, tuple[PrimitiveSet, torch.Tensor]] = {}
     if work_dir is not None:
@@ -233,6 +251,7 @@ def build_aerial_map(
         global_descriptors=torch.stack([r[1] for r in ordered]),
         meters_per_pixel=ortho.meters_per_pixel,
         origin_xy=ortho.origin_xy,
+        local_origin_xy=map_frame_origin(ortho),
         image_size=ortho.size_px,
         crs=ortho.crs,
         config=mapper.config,
