@@ -31,6 +31,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from meridian_torch.config import GroundObservationConfig
+from meridian_torch.core.parallel import thread_map
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.perception.protocols import SegmentDescriber, Segmenter
 
@@ -364,11 +365,12 @@ def observe_frames(
     cfg: GroundObservationConfig,
 ) -> list[FrameObservations]:
     """Observations of B frames: images (B, 3, H, W) in [0, 1], depths (B, H, W) metres,
-    T_odom_camera (B, 4, 4), times (B,). Segmentation and description run on the whole batch."""
+    T_odom_camera (B, 4, 4), times (B,). Segmentation and description run on the whole batch, the
+    3D work one frame per thread (`thread_map`)."""
     seg = segmenter.segment(images, None)
     desc = describer.describe(images, seg.masks, seg.valid)
-    return [
-        frame_observations(seg.masks[b][seg.valid[b]], desc[b][seg.valid[b]], depths[b], T_odom_camera[b],
-                           float(times[b]), camera, cfg)
-        for b in range(images.shape[0])
-    ]
+    return thread_map(
+        lambda b: frame_observations(seg.masks[b][seg.valid[b]], desc[b][seg.valid[b]], depths[b], T_odom_camera[b],
+                                     float(times[b]), camera, cfg),
+        range(images.shape[0]),
+    )

@@ -24,6 +24,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from skimage.segmentation import felzenszwalb, slic
 
+from meridian_torch.core.parallel import thread_map
+
 from meridian_torch.perception.protocols import Segmentation
 
 __all__ = [
@@ -187,7 +189,8 @@ class ClassicalSegmenter:
             raise ValueError(f"meters_per_pixel must be positive or None, got {meters_per_pixel}")
         bsz, _, h, w = images.shape
         rgb = images.detach().to("cpu", torch.float32).clamp(0, 1).permute(0, 2, 3, 1).numpy()
-        labels, scores = zip(*(self._segment_one(rgb[i], meters_per_pixel) for i in range(bsz)), strict=True)
+        labels, scores = zip(*thread_map(lambda i: self._segment_one(rgb[i], meters_per_pixel), range(bsz)),
+                             strict=True)
         counts = [len(s) for s in scores]
         m = max(counts)
         label_t = torch.from_numpy(np.stack(labels)).to(images.device)
