@@ -98,6 +98,20 @@ def _take_patches(sets: InlierSets, index: Tensor) -> InlierSets:
     )
 
 
+def _select_associations(assoc: Associations, part: Tensor) -> Associations:
+    """The associations of patches `part`, in the same (untrimmed) index spaces."""
+    return dataclasses.replace(
+        assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part], cosine=assoc.cosine[part]
+    )
+
+
+def _concat_hypotheses(parts: list[Hypotheses]) -> Hypotheses:
+    """Hypotheses of consecutive patch chunks (same L and association axis) as one."""
+    if len(parts) == 1:
+        return parts[0]
+    return Hypotheses(**{f.name: torch.cat([getattr(h, f.name) for h in parts]) for f in dataclasses.fields(Hypotheses)})
+
+
 @torch.no_grad()
 def match_submap(
     ground: PrimitiveSet,
@@ -155,16 +169,22 @@ def match_submap(
             del M
         sets = _take_patches(_concat_sets(chunks), torch.argsort(by_size))
     verify = cfg.verification
-    hypotheses = cluster_hypotheses(
-        sets,
-        assoc,
-        ground,
-        aerial,
-        n_hypotheses=max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch,
-        translation_m=cfg.cluster_translation_m,
-        rotation_deg=cfg.cluster_rotation_deg,
-        registration=cfg.registration,
-    )
+    # Clustering compares every pair of a patch's sets, (P, S, S): a patch chunk at a time, so
+    # that its peak memory does not grow with the number of patches (609 patches: 2.1 -> 1.1 GB).
+    parts = torch.arange(len(aerial), device=sets.masks.device).split(cfg.patch_chunk)
+    hypotheses = _concat_hypotheses([
+        cluster_hypotheses(
+            _take_patches(sets, part),
+            _select_associations(assoc, part),
+            ground,
+            aerial.select(part),
+            n_hypotheses=max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch,
+            translation_m=cfg.cluster_translation_m,
+            rotation_deg=cfg.cluster_rotation_deg,
+            registration=cfg.registration,
+        )
+        for part in parts
+    ])
     if not verify.enabled:
         return hypotheses
     return reweight_hypotheses(hypotheses, ground, aerial, verify, cfg.hypotheses_per_patch)
