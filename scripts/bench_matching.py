@@ -122,18 +122,21 @@ def build_scene(args: argparse.Namespace):
 
 
 def make_config(args: argparse.Namespace):
-    from meridian_torch.matching.config import AssociationConfig, MatchConfig, ParticleConfig
+    """The shipped matching config (configs/default.yaml), with the options given on the command line."""
+    from meridian_torch.config import CONFIG_DIR, load_config
 
-    return MatchConfig(
-        associations=AssociationConfig(k_prim=args.k_prim),
-        particles=ParticleConfig(
-            n_particles=args.particles,
-            n_iterations=args.iterations,
-            max_associations=args.max_associations or None,
-            seed=args.seed,
-        ),
-        solver=args.solver,
-    )
+    shipped = load_config(CONFIG_DIR / "default.yaml").matching
+    particles = {"seed": args.seed}
+    if args.particles is not None:
+        particles["n_particles"] = args.particles
+    if args.iterations is not None:
+        particles["n_iterations"] = args.iterations
+    if args.max_associations is not None:
+        particles["max_associations"] = args.max_associations or None
+    update = {"particles": shipped.particles.model_copy(update=particles), "solver": args.solver}
+    if args.k_prim is not None:
+        update["associations"] = shipped.associations.model_copy(update={"k_prim": args.k_prim})
+    return shipped.model_copy(update=update)
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,10 +282,12 @@ def _fmt_top(top: dict) -> str:
 
 def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
     n_patches = 5 if args.quick else args.patches
+    cfg = make_config(args)
     print(
         f"bench_matching: seed {args.seed}, {args.threads} torch threads, solver {args.solver}, "
-        f"particles {args.particles}, iterations {args.iterations}, pruned to {args.max_associations or 'all'} "
-        f"associations, k_prim {args.k_prim}"
+        f"particles {cfg.particles.n_particles}, iterations {cfg.particles.n_iterations}, pruned to "
+        f"{cfg.particles.max_associations or 'all'} associations, k_prim {cfg.associations.k_prim} "
+        "(the shipped config unless given)"
     )
     print(
         f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
@@ -350,11 +355,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=2, help="torch intra-op threads in every child (default 2)")
     p.add_argument("--quick", action="store_true", help="smoke run: 5 aerial patches instead of --patches")
     p.add_argument("--patches", type=int, default=25, help="number of aerial patches P (default 25)")
-    p.add_argument("--particles", type=int, default=32, help="Langevin particles per patch (ParticleConfig default 32)")
-    p.add_argument("--iterations", type=int, default=100, help="max Langevin iterations (ParticleConfig default 100)")
-    p.add_argument("--max-associations", type=int, default=128,
-                   help="support pruning before sampling, 0 = off (ParticleConfig default 128)")
-    p.add_argument("--k-prim", type=int, default=20, help="semantic neighbours per ground primitive (default 20)")
+    p.add_argument("--particles", type=int, default=None,
+                   help="Langevin particles per patch (default: the shipped config's, configs/default.yaml)")
+    p.add_argument("--iterations", type=int, default=None, help="max Langevin iterations (default: shipped)")
+    p.add_argument("--max-associations", type=int, default=None,
+                   help="support pruning before sampling, 0 = off (default: shipped)")
+    p.add_argument("--k-prim", type=int, default=None, help="semantic neighbours per ground primitive (default: shipped)")
     p.add_argument("--solver", choices=["particles", "clipper"], default="particles", help="inlier-set solver")
     p.add_argument("--ground-points", type=int, default=60)
     p.add_argument("--ground-lines", type=int, default=40)
