@@ -46,7 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 STAGE_ORDER = (
     "read frames", "ground mapping", "perception", "segmentation", "segment descriptors", "global descriptors",
     "observations", "tracking", "submaps", "localization", "place recognition", "matching", "associations",
-    "affinity", "particles", "registration", "clustering", "verification", "consistency", "pose graph",
+    "affinity", "particles", "clipper", "registration and clustering", "verification", "consistency", "pose graph",
     "final pass",
 )
 

@@ -221,3 +221,15 @@ def test_patch_chunking_does_not_change_results(prior: float | None) -> None:
         assert torch.equal(runs[0].valid, other.valid) and torch.equal(runs[0].association_mask, other.association_mask)
         torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
         torch.testing.assert_close(runs[0].probability, other.probability)
+
+
+def test_sub_stages_are_timed_when_recorded() -> None:
+    from meridian_torch.core.timing import record_stages
+
+    ground, patches, _, _ = scene()
+    cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=8, n_iterations=10), "patch_chunk": 2})
+    with record_stages() as times:
+        match_submap(ground, stack_primitive_sets(patches), config=cfg, generator=torch.Generator().manual_seed(0))
+    assert set(times.seconds) == {"associations", "affinity", "particles", "registration and clustering",
+                                  "verification"}
+    assert times.calls["affinity"] == times.calls["particles"] == -(-len(patches) // 2)  # one per patch chunk

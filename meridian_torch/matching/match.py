@@ -13,6 +13,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from meridian_torch.core.timing import stage
 from meridian_torch.matching.affinity import affinity, affinity_entries
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.matching.clipper import solve_clipper
@@ -101,7 +102,8 @@ def _take_patches(sets: InlierSets, index: Tensor) -> InlierSets:
 def _select_associations(assoc: Associations, part: Tensor) -> Associations:
     """The associations of patches `part`, in the same (untrimmed) index spaces."""
     return dataclasses.replace(
-        assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part], cosine=assoc.cosine[part]
+        assoc, pairs=assoc.pairs[part], is_line=assoc.is_line[part], valid=assoc.valid[part],
+        cosine=assoc.cosine[part],
     )
 
 
@@ -109,7 +111,8 @@ def _concat_hypotheses(parts: list[Hypotheses]) -> Hypotheses:
     """Hypotheses of consecutive patch chunks (same L and association axis) as one."""
     if len(parts) == 1:
         return parts[0]
-    return Hypotheses(**{f.name: torch.cat([getattr(h, f.name) for h in parts]) for f in dataclasses.fields(Hypotheses)})
+    names = [f.name for f in dataclasses.fields(parts[0])]
+    return Hypotheses(**{name: torch.cat([getattr(h, name) for h in parts]) for name in names})
 
 
 @torch.no_grad()
@@ -146,12 +149,15 @@ def match_submap(
     if rotation_prior is not None:
         prior = torch.as_tensor(rotation_prior, dtype=dtype, device=device).expand(len(aerial)).contiguous()
     ac = cfg.associations
-    assoc = putative_associations(
-        ground, aerial, k_prim=ac.k_prim, direction=ac.direction, min_line_length_m=ac.min_line_length_m
-    )
+    with stage("associations"):
+        assoc = putative_associations(
+            ground, aerial, k_prim=ac.k_prim, direction=ac.direction, min_line_length_m=ac.min_line_length_m
+        )
     if cfg.solver == "clipper":
-        M = affinity(ground, aerial, assoc, cfg.affinity, rotation_prior=prior)
-        sets = _clipper_sets(M, assoc.valid, cfg, generator)
+        with stage("affinity"):
+            M = affinity(ground, aerial, assoc, cfg.affinity, rotation_prior=prior)
+        with stage("clipper"):
+            sets = _clipper_sets(M, assoc.valid, cfg, generator)
     else:
         # Seeds are drawn per patch up front, so a patch's result is the same in any chunking.
         # Chunks take patches by size (most lines first), so each chunk's tables are padded
@@ -162,32 +168,37 @@ def match_submap(
         for c0 in range(0, len(aerial), cfg.patch_chunk):
             part = by_size[c0 : c0 + cfg.patch_chunk]
             assoc_c, aerial_c = _patch_chunk(assoc, aerial, part)
-            M = affinity_entries(
-                ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
-            )
-            chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
+            with stage("affinity"):
+                M = affinity_entries(
+                    ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
+                )
+            with stage("particles"):
+                chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
             del M
         sets = _take_patches(_concat_sets(chunks), torch.argsort(by_size))
     verify = cfg.verification
+    n_clustered = max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch
     # Clustering compares every pair of a patch's sets, (P, S, S): a patch chunk at a time, so
     # that its peak memory does not grow with the number of patches (609 patches: 2.1 -> 1.1 GB).
     parts = torch.arange(len(aerial), device=sets.masks.device).split(cfg.patch_chunk)
-    hypotheses = _concat_hypotheses([
-        cluster_hypotheses(
-            _take_patches(sets, part),
-            _select_associations(assoc, part),
-            ground,
-            aerial.select(part),
-            n_hypotheses=max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch,
-            translation_m=cfg.cluster_translation_m,
-            rotation_deg=cfg.cluster_rotation_deg,
-            registration=cfg.registration,
-        )
-        for part in parts
-    ])
+    with stage("registration and clustering"):
+        hypotheses = _concat_hypotheses([
+            cluster_hypotheses(
+                _take_patches(sets, part),
+                _select_associations(assoc, part),
+                ground,
+                aerial.select(part),
+                n_hypotheses=n_clustered,
+                translation_m=cfg.cluster_translation_m,
+                rotation_deg=cfg.cluster_rotation_deg,
+                registration=cfg.registration,
+            )
+            for part in parts
+        ])
     if not verify.enabled:
         return hypotheses
-    return reweight_hypotheses(hypotheses, ground, aerial, verify, cfg.hypotheses_per_patch)
+    with stage("verification"):
+        return reweight_hypotheses(hypotheses, ground, aerial, verify, cfg.hypotheses_per_patch)
 
 
 def _array(x: object, name: str, tail: tuple[int, ...], dtype: torch.dtype) -> Tensor:
