@@ -44,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 # Stages in the order of the data flow; sub-stages are printed under the stage they ran in.
 STAGE_ORDER = (
-    "read frames", "ground mapping", "perception", "segmentation", "segment descriptors", "global descriptors",
+    "read frames", "ground mapping", "global descriptors", "segmentation", "segment descriptors",
     "observations", "tracking", "submaps", "localization", "place recognition", "matching", "associations",
     "affinity", "particles", "clipper", "registration and clustering", "verification", "consistency", "pose graph",
     "final pass",

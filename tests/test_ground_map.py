@@ -172,3 +172,15 @@ def test_cli_map_ground_writes_submaps_and_plots(tiny: Path, tmp_path: Path) -> 
     assert (out / "config.yaml").is_file() and (out / "run.json").is_file()
     bad = CliRunner().invoke(app, ["map-ground", str(tmp_path / "missing"), "--out", str(out)])
     assert bad.exit_code == 1 and "error:" in bad.output
+
+
+def test_ground_mapping_stages_are_timed_when_recorded(tiny: Path) -> None:
+    from meridian_torch.core.timing import record_stages
+
+    reader = SequenceReader(tiny)
+    mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+    with record_stages() as times:
+        mapper.add_frames([reader[i] for i in range(4)])
+    assert {"global descriptors", "segmentation", "segment descriptors", "observations", "tracking",
+            "submaps"} <= set(times.seconds)
+    assert times.calls["tracking"] == 4 and times.calls["segmentation"] == 1  # one batch, four frames

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from meridian_torch.config import GroundMapConfig, MeridianConfig
+from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame, SequenceReader
 from meridian_torch.mapping.config import PrimitiveConfig
@@ -121,7 +122,10 @@ class GroundMapper:
                     wanted.append(b)
                     last = xyz
             self._last_descriptor_xyz = last
-            global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32) if wanted else None
+            global_desc = None
+            if wanted:
+                with stage("global descriptors"):
+                    global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32)
 
             observations = observe_frames(images, depths, T_odom_camera, times, self.segmenter, self.describer,
                                           self.camera, self.cfg.observation)
@@ -134,12 +138,14 @@ class GroundMapper:
                 desc = global_desc[wanted.index(b)] if b in wanted else None
                 self.frames.append(_FrameRecord(float(times[b]), T_odom_base[b], T_odom_camera[b, :3, 3].copy(),
                                                 path, desc))
-                self.tracker.update(obs)
-                self.trigger.observe(self.tracker)
-                submap = self._maybe_submap(force=False)
-                if submap is not None:
-                    submaps.append(submap)
-                self.trigger.prune(self.tracker)
+                with stage("tracking"):
+                    self.tracker.update(obs)
+                with stage("submaps"):
+                    self.trigger.observe(self.tracker)
+                    submap = self._maybe_submap(force=False)
+                    if submap is not None:
+                        submaps.append(submap)
+                    self.trigger.prune(self.tracker)
         return submaps
 
     def finish(self) -> list[GroundSubmap]:

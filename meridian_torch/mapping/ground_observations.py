@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from meridian_torch.config import GroundObservationConfig
 from meridian_torch.core.parallel import thread_map
+from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.perception.protocols import SegmentDescriber, Segmenter
 
@@ -367,10 +368,13 @@ def observe_frames(
     """Observations of B frames: images (B, 3, H, W) in [0, 1], depths (B, H, W) metres,
     T_odom_camera (B, 4, 4), times (B,). Segmentation and description run on the whole batch, the
     3D work one frame per thread (`thread_map`)."""
-    seg = segmenter.segment(images, None)
-    desc = describer.describe(images, seg.masks, seg.valid)
-    return thread_map(
-        lambda b: frame_observations(seg.masks[b][seg.valid[b]], desc[b][seg.valid[b]], depths[b], T_odom_camera[b],
-                                     float(times[b]), camera, cfg),
-        range(images.shape[0]),
-    )
+    with stage("segmentation"):
+        seg = segmenter.segment(images, None)
+    with stage("segment descriptors"):
+        desc = describer.describe(images, seg.masks, seg.valid)
+    with stage("observations"):
+        return thread_map(
+            lambda b: frame_observations(seg.masks[b][seg.valid[b]], desc[b][seg.valid[b]], depths[b],
+                                         T_odom_camera[b], float(times[b]), camera, cfg),
+            range(images.shape[0]),
+        )
