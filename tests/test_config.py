@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -105,3 +106,25 @@ def test_relative_paths_resolve_against_the_file(tmp_path: Path) -> None:
     (sub / "c.yaml").write_text("sim:\n  trajectory:\n    kind: file\n    path: ../data/gt.tum\n")
     cfg = load_config(sub / "c.yaml")
     assert Path(cfg.sim.trajectory.path) == (tmp_path / "data" / "gt.tum").resolve()
+
+
+def _float_keys(data: dict, prefix: str = "") -> list[str]:
+    keys = []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            keys += _float_keys(value, f"{prefix}{key}.")
+        elif isinstance(value, float):
+            keys.append(f"{prefix}{key}")
+    return keys
+
+
+FLOAT_KEYS = _float_keys(MeridianConfig().model_dump(mode="json"))
+
+
+@pytest.mark.parametrize("value", ["inf", "-inf", "nan"])
+def test_every_float_refuses_non_finite_values(value: str) -> None:
+    """An infinite sigma or gate would silently disable what it bounds: every float is checked."""
+    assert len(FLOAT_KEYS) > 50  # every stage's floats, not a handful
+    for key in FLOAT_KEYS:
+        with pytest.raises(ConfigError, match=re.escape(key) + ": .*finite"):
+            load_config(CONFIG_DIR / "default.yaml", [f"{key}={value}"])

@@ -20,9 +20,10 @@ __all__ = [
 
 
 class StrictModel(BaseModel):
-    """Unknown keys are errors; values are validated on assignment too."""
+    """Unknown keys are errors; values are validated on assignment too; NaN and infinities are
+    refused in every float (an infinite sigma or gate silently disables what it bounds)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False)
 
 
 class ClassRasterConfig(StrictModel):
