@@ -34,6 +34,8 @@ config_app = typer.Typer(help="Inspect configuration files.", no_args_is_help=Tr
 app.add_typer(config_app, name="config")
 models_app = typer.Typer(help="List and verify local model files (models/manifest.yaml).", no_args_is_help=True)
 app.add_typer(models_app, name="models")
+convert_app = typer.Typer(help="Convert other recordings to a sequence folder (FORMAT.md).", no_args_is_help=True)
+app.add_typer(convert_app, name="convert")
 
 ConfigOption = Annotated[
     Path | None,
@@ -159,6 +161,34 @@ def _build_map(cfg: MeridianConfig, ortho_path: Path, out: Path) -> Any:
                               device=runtime.device, progress=update)
     finally:
         close()
+
+
+@convert_app.command("tum-rgbd")
+@_error_boundary
+def convert_tum_rgbd_command(
+    source: Annotated[Path, typer.Argument(help="TUM RGB-D sequence folder: rgb.txt, depth.txt, rgb/, depth/ and "
+                                                "groundtruth.txt (camera poses, used as odometry).")],
+    ortho: Annotated[Path, typer.Option("--ortho", help="Orthophoto of the area: GeoTIFF, or PNG/JPEG with its .json "
+                                                        "georeference.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write (must not exist).")],
+    camera: Annotated[str, typer.Option(help="The benchmark camera whose calibration undistorts the images: fr1, "
+                                             "fr2 or fr3 (rectified already).")] = "fr1",
+    trajectory: Annotated[Path | None, typer.Option(help="Camera poses in TUM format to use as odometry instead of "
+                                                         "groundtruth.txt (e.g. a visual odometry estimate).")] = None,
+    max_dt: Annotated[float, typer.Option(help="Largest colour-depth time difference paired, seconds.")] = 0.02,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
+) -> None:
+    """A TUM RGB-D benchmark sequence -> a sequence folder (frames paired by time, images undistorted)."""
+    from meridian_torch.io.converters.tum_rgbd import convert_tum_rgbd
+
+    update, close = _progress_bar("converting", "frame")
+    try:
+        counts = convert_tum_rgbd(source, ortho, out, camera=camera, trajectory=trajectory, max_dt_s=max_dt,
+                                  overwrite=overwrite, progress=update)
+    finally:
+        close()
+    typer.echo(f"wrote {out}: {counts['frames']} frames; skipped {counts['unpaired']} colour images without depth "
+               f"within {max_dt} s and {counts['without_pose']} outside the trajectory")
 
 
 @app.command("build-map")
