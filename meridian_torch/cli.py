@@ -163,6 +163,31 @@ def _build_map(cfg: MeridianConfig, ortho_path: Path, out: Path) -> Any:
         close()
 
 
+@convert_app.command("kitti")
+@_error_boundary
+def convert_kitti_command(
+    source: Annotated[Path, typer.Argument(help="KITTI odometry sequence folder: image_2/, velodyne/, calib.txt, "
+                                                "times.txt.")],
+    odometry: Annotated[Path, typer.Option(help="Poses in KITTI format, one per frame: poses/XX.txt (camera 0) or "
+                                                "an estimate such as KISS-ICP's (lidar; add --odometry-frame lidar).")],
+    ortho: Annotated[Path, typer.Option("--ortho", help="Orthophoto of the area: GeoTIFF, or PNG/JPEG with its .json "
+                                                        "georeference.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write (must not exist).")],
+    odometry_frame: Annotated[str, typer.Option(help="Frame of the odometry poses: camera or lidar.")] = "camera",
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
+) -> None:
+    """A KITTI odometry sequence -> a sequence folder (depth images from the lidar projected into camera 2)."""
+    from meridian_torch.io.converters.kitti import convert_kitti
+
+    update, close = _progress_bar("converting", "frame")
+    try:
+        counts = convert_kitti(source, odometry, ortho, out, odometry_frame=odometry_frame, overwrite=overwrite,
+                               progress=update)
+    finally:
+        close()
+    typer.echo(f"wrote {out}: {counts['frames']} frames")
+
+
 @convert_app.command("tum-rgbd")
 @_error_boundary
 def convert_tum_rgbd_command(
