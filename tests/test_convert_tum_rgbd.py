@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from meridian_torch.cli import app
 from meridian_torch.config import CONFIG_DIR, load_config
-from meridian_torch.io.converters.tum_rgbd import T_BASE_CAMERA, TUM_DEPTH_SCALE, TumRgbdError, associate
+from meridian_torch.io.converters.sync import T_BASE_OPTICAL, associate
+from meridian_torch.io.converters.tum_rgbd import TUM_DEPTH_SCALE, TumRgbdError
 from meridian_torch.io.converters.tum_rgbd import convert_tum_rgbd
 from meridian_torch.io.poses import write_tum
 from meridian_torch.io.sequence import SequenceReader, check_sequence
@@ -84,7 +85,7 @@ def test_a_tum_tree_converts_back_to_the_same_frames_and_odometry(tum_tree, tmp_
     original, converted = SequenceReader(seq), SequenceReader(tmp_path / "out")
     assert counts == {"frames": len(original), "unpaired": 0, "without_pose": 0} and len(converted) == len(original)
     np.testing.assert_allclose(converted.frame_times, original.frame_times + 1.3e9, atol=1e-6, rtol=0)
-    np.testing.assert_array_equal(converted.camera.T_base_camera, T_BASE_CAMERA)
+    np.testing.assert_array_equal(converted.camera.T_base_camera, T_BASE_OPTICAL)
     for i in (0, len(original) // 2, len(original) - 1):
         a, b = original[i], converted[i]
         np.testing.assert_array_equal(b.rgb, a.rgb)

@@ -24,14 +24,13 @@ import numpy as np
 from meridian_torch.errors import MeridianError
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.camera import CameraModel
+from meridian_torch.io.converters.sync import T_BASE_OPTICAL
 from meridian_torch.io.ortho import read_orthophoto
 from meridian_torch.io.sequence import SequenceWriter
 
 __all__ = ["KittiError", "convert_kitti", "lidar_depth_image", "read_calib", "read_kitti_poses"]
 
 DEPTH_SCALE = 256.0  # depth PNG units per metre: 1/256 m steps up to 256 m (KITTI depth benchmark's choice)
-# The base frame (x forward, y left, z up) in a camera's optical frame (z forward, x right, y down).
-T_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 class KittiError(MeridianError):

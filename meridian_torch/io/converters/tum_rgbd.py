@@ -27,16 +27,15 @@ import numpy as np
 from meridian_torch.errors import MeridianError
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.camera import CameraModel
+from meridian_torch.io.converters.sync import T_BASE_OPTICAL, associate, undistort_maps
 from meridian_torch.io.ortho import read_orthophoto
 from meridian_torch.io.poses import read_tum
 from meridian_torch.io.sequence import SequenceWriter
 
-__all__ = ["TUM_CAMERAS", "TumCamera", "TumRgbdError", "associate", "convert_tum_rgbd", "read_file_list"]
+__all__ = ["TUM_CAMERAS", "TumCamera", "TumRgbdError", "convert_tum_rgbd", "read_file_list"]
 
 TUM_DEPTH_SCALE = 5000.0  # depth PNG units per metre in the TUM RGB-D benchmark
 
-# The base frame (x forward, y left, z up) in the camera's optical frame (z forward, x right, y down).
-T_BASE_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 class TumRgbdError(MeridianError):
@@ -85,36 +84,6 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     return np.asarray(times)[order], [names[i] for i in order]
 
 
-def associate(rgb_times: np.ndarray, depth_times: np.ndarray, max_dt_s: float) -> np.ndarray:
-    """(N,) index of the depth image nearest in time to each colour image, -1 beyond `max_dt_s`.
-
-    One-to-one: a depth image pairs with at most one colour image (the nearest), as TUM's
-    associate.py does.
-    """
-    k = np.clip(np.searchsorted(depth_times, rgb_times), 1, len(depth_times) - 1) if len(depth_times) > 1 else None
-    if k is None:
-        nearest = np.zeros(len(rgb_times), dtype=np.int64)
-    else:
-        left_closer = np.abs(rgb_times - depth_times[k - 1]) <= np.abs(depth_times[k] - rgb_times)
-        nearest = np.where(left_closer, k - 1, k)
-    dt = np.abs(depth_times[nearest] - rgb_times)
-    pair = np.where(dt <= max_dt_s, nearest, -1)
-    # Keep only the closest colour image of every depth image.
-    order = np.lexsort((dt, pair))
-    taken = pair[order]
-    first = np.r_[True, taken[1:] != taken[:-1]]
-    keep = np.zeros(len(pair), dtype=bool)
-    keep[order[first]] = True
-    return np.where(keep, pair, -1)
-
-
-def _undistort_maps(camera: TumCamera, width: int, height: int) -> tuple[np.ndarray, np.ndarray] | None:
-    if not any(camera.distortion):
-        return None
-    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
-    return cv2.initUndistortRectifyMap(K, np.array(camera.distortion), None, K, (width, height), cv2.CV_32FC1)
-
-
 def _read_image(path: Path, flags: int) -> np.ndarray:
     image = cv2.imread(str(path), flags)
     if image is None:
@@ -161,9 +130,9 @@ def convert_tum_rgbd(
     cam = TUM_CAMERAS[camera]
     scale = width / 640.0  # the calibration is for 640x480
     model = CameraModel(width, height, cam.fx * scale, cam.fy * scale, cam.cx * scale, cam.cy * scale,
-                        TUM_DEPTH_SCALE, T_BASE_CAMERA)
-    maps = _undistort_maps(TumCamera(model.fx, model.fy, model.cx, model.cy, cam.distortion), width, height)
-    odometry = Trajectory(T_odom_camera.timestamps, T_odom_camera.poses @ np.linalg.inv(T_BASE_CAMERA))
+                        TUM_DEPTH_SCALE, T_BASE_OPTICAL)
+    maps = undistort_maps(model.K, cam.distortion, width, height)
+    odometry = Trajectory(T_odom_camera.timestamps, T_odom_camera.poses @ np.linalg.inv(T_BASE_OPTICAL))
 
     with SequenceWriter(out, model, overwrite=overwrite) as writer:
         for done, i in enumerate(use):
