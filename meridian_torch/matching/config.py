@@ -222,7 +222,13 @@ class CoarseSearchConfig(StrictModel):
         "patch at chance or worse (see README, coarse search)",
     )
     blur_cells: float = Field(default=1.0, ge=0, description="Gaussian blur sigma of both rasters, cells")
-    min_energy: float = Field(default=1e-6, gt=0, description="windows with less variance score 0")
+    min_window_energy: float = Field(
+        default=1.0,
+        ge=0,
+        description="cells whose map window has less energy (sum of squared deviations of the blurred "
+        "occupancy; one isolated blurred point has about 1 / (4 pi blur^2)) score 0: near-empty windows "
+        "correlate perfectly with anything",
+    )
     chain_decay: float = Field(
         default=0.9, ge=0, le=1, description="weight of the previous submaps' chain volume (0 = single submaps)"
     )

@@ -46,8 +46,7 @@ class CoarseMap:
     shape: tuple[int, int]  # (H, W)
     fft_shape: tuple[int, int]  # zero-padded size of the correlations (no wrap-around)
     map_spectrum: torch.Tensor  # (C, fh, fw // 2 + 1) rfft2 of the blurred class grids
-    sum_spectrum: torch.Tensor  # (fh, fw // 2 + 1) rfft2 of the class-summed grid
-    square_spectrum: torch.Tensor  # (fh, fw // 2 + 1) rfft2 of the class-summed squared grid
+    window_energy: torch.Tensor  # (H, W) sum of squared deviations of the grid in the disk around each cell
     cell_patch: torch.Tensor  # (H * W,) int64 patch owning each cell, -1 off the map
     class_centres: torch.Tensor  # (C, D) unit descriptor cluster centres (C = 1: zeros)
     n_patches: int
@@ -186,15 +185,21 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
         dist = torch.cdist(chunk, patch_centres).masked_fill(~inside, float("inf"))
         best = dist.argmin(1)
         owner.append(torch.where(inside.any(1), best, torch.full_like(best, -1)))
-    total = grid.sum(0)
+    # Window energy in float64: it cancels sum(a^2) - sum(a)^2 / n, which float32 FFTs cannot.
+    r = _radius_cells(cfg)
+    disk = torch.fft.rfft2(_disk(cfg).double(), s=fft_shape)
+    window = lambda x: torch.fft.irfft2(torch.fft.rfft2(x.double(), s=fft_shape) * disk, s=fft_shape)[  # noqa: E731
+        r : r + h, r : r + w
+    ]
+    n_window = len(centres) * float(_disk(cfg).sum())
+    energy = (window(grid.square().sum(0)) - window(grid.sum(0)).square() / n_window).clamp_min(0)
     return CoarseMap(
         origin_xy=origin,
         cell_m=cfg.cell_m,
         shape=(h, w),
         fft_shape=fft_shape,
         map_spectrum=torch.fft.rfft2(grid, s=fft_shape),
-        sum_spectrum=torch.fft.rfft2(total, s=fft_shape),
-        square_spectrum=torch.fft.rfft2(grid.square().sum(0), s=fft_shape),
+        window_energy=energy.float(),
         cell_patch=torch.cat(owner),
         class_centres=centres,
         n_patches=len(bounds),
@@ -210,7 +215,8 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     """(yaws, H, W) Pearson correlation of the submap (odom frame, centred at `centre_odom_xy`)
     rotated by each yaw and centred on each cell, with the map inside the submap's disk.
 
-    A submap without primitives scores 0 everywhere.
+    A submap without primitives scores 0 everywhere, and so do cells whose window holds less
+    than `min_window_energy` (empty or nearly empty map).
     """
     r = _radius_cells(cfg)
     side = 2 * r + 1
@@ -227,20 +233,18 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     disk = _disk(cfg)
     n_classes = len(cmap.class_centres)
     kernel = _blur(_rasterise(rotated, cls, (-half, -half), cfg.cell_m, (side, side), n_classes), cfg.blur_cells)
+    kernel = kernel * disk
     n_window = n_classes * disk.sum()
     kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
     kernel_norm = kernel.flatten(1).norm(dim=1)  # (K,)
     fh, fw = cmap.fft_shape
     flipped = torch.fft.rfft2(torch.flip(kernel, (-2, -1)), s=(fh, fw))  # correlation = convolution with flip
     corr = torch.fft.irfft2((cmap.map_spectrum[None] * flipped).sum(1), s=(fh, fw))
-    disk_spectrum = torch.fft.rfft2(disk, s=(fh, fw))
-    window_sum = torch.fft.irfft2(cmap.sum_spectrum * disk_spectrum, s=(fh, fw))
-    window_square = torch.fft.irfft2(cmap.square_spectrum * disk_spectrum, s=(fh, fw))
     h, w = cmap.shape
     corr = corr[:, r : r + h, r : r + w]  # full convolution index n = cell + r
-    energy = (window_square - window_sum.square() / n_window)[r : r + h, r : r + w].clamp_min(0)
-    denominator = kernel_norm[:, None, None] * energy.sqrt()[None]
-    return torch.where(denominator > cfg.min_energy, corr / denominator.clamp_min(cfg.min_energy), 0.0)
+    denominator = kernel_norm[:, None, None] * cmap.window_energy.sqrt()[None]
+    ok = (cmap.window_energy >= cfg.min_window_energy)[None] & (kernel_norm > 0)[:, None, None]
+    return torch.where(ok, corr / torch.where(ok, denominator, 1.0), 0.0)
 
 
 def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_xy: torch.Tensor,
