@@ -7,6 +7,7 @@
 from meridian_torch.matching.place_recognition.coarse import (
     CoarseMap,
     CoarsePriors,
+    CoarseSearch,
     build_coarse_map,
     chain_scores,
     patch_priors,
@@ -22,6 +23,7 @@ from meridian_torch.matching.place_recognition.descriptors import (
 __all__ = [
     "CoarseMap",
     "CoarsePriors",
+    "CoarseSearch",
     "build_coarse_map",
     "chain_scores",
     "disk_overlap",

@@ -24,6 +24,7 @@ from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 __all__ = [
     "CoarseMap",
     "CoarsePriors",
+    "CoarseSearch",
     "build_coarse_map",
     "chain_scores",
     "descriptor_classes",
@@ -295,3 +296,22 @@ def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig)
         cmap.origin_xy[1] + (row.double() + 0.5) * cmap.cell_m,
     ], -1)
     return CoarsePriors(score=score, yaw=_yaws(cfg)[best_yaw[first]], centre_xy=centre)
+
+
+class CoarseSearch:
+    """The coarse search over one map for a robot's successive submaps (holds the chain volume)."""
+
+    def __init__(self, primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> None:
+        self.cfg = cfg
+        self.map = build_coarse_map(primitives, bounds_xy, cfg)
+        self._chain: torch.Tensor | None = None
+        self._previous_centre: torch.Tensor | None = None
+
+    def add_submap(self, ground: PrimitiveSet, centre_odom_xy: torch.Tensor) -> CoarsePriors:
+        """Score the next submap (odom frame, centred at `centre_odom_xy`) chained with the earlier ones."""
+        centre = torch.as_tensor(centre_odom_xy, dtype=torch.float64).cpu()
+        single = submap_scores(self.map, ground.to(device="cpu"), centre, self.cfg)
+        step = centre - self._previous_centre if self._previous_centre is not None else torch.zeros(2)
+        self._chain = chain_scores(self._chain, single, step, self.map, self.cfg)
+        self._previous_centre = centre
+        return patch_priors(self.map, self._chain, self.cfg)
