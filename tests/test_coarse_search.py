@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from meridian_torch.matching.config import CoarseSearchConfig
@@ -85,13 +86,15 @@ def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col:
     r = int(math.ceil(cfg.radius_m / cfg.cell_m))
     yaw = yaw_index * 2 * math.pi / cfg.yaws
     c, s = math.cos(yaw), math.sin(yaw)
-    from meridian_torch.matching.place_recognition.coarse import _blur, _primitive_points
+    from meridian_torch.matching.place_recognition.coarse import _blur, _channels, _n_channels, _primitive_points
 
-    xy, cls = _primitive_points(ground.points_xy, ground.point_descriptors, ground.line_endpoints,
+    xy, cls, angle = _primitive_points(ground.points_xy, ground.point_descriptors, ground.line_endpoints,
                                 ground.line_descriptors, cmap.class_centres, cfg.cell_m / 2)
     xy = (xy - centre_odom.float()) @ torch.tensor([[c, s], [-s, c]])
     half = (r + 0.5) * cfg.cell_m
-    kernel = _blur(_rasterise(xy, cls, (-half, -half), cfg.cell_m, (2 * r + 1,) * 2, len(cmap.class_centres)),
+    n_channels = _n_channels(len(cmap.class_centres), cfg)
+    kernel = _blur(_rasterise(xy, _channels(cls, angle + yaw, cfg), (-half, -half), cfg.cell_m, (2 * r + 1,) * 2,
+                              n_channels),
                    cfg.blur_cells).double()
     fh, fw = cmap.fft_shape
     grid = torch.fft.irfft2(cmap.map_spectrum, s=(fh, fw))[:, : cmap.shape[0], : cmap.shape[1]].double()
@@ -105,22 +108,23 @@ def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col:
     return float((a * g).sum() / (a.norm() * g.norm()))
 
 
-def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws() -> None:
+@pytest.mark.parametrize("cfg", [CFG, CFG.model_copy(update={"classes": 2, "orientation_bins": 3})])
+def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws(cfg: CoarseSearchConfig) -> None:
     batch, bounds = _random_map(1, side=4)
-    cmap = build_coarse_map(batch, bounds, CFG)
+    cmap = build_coarse_map(batch, bounds, cfg)
     centre = torch.tensor([40.0, 40.0])
-    ground = _planted_submap(batch, centre, 0.7, torch.tensor([3.0, -2.0]), CFG.radius_m)
+    ground = _planted_submap(batch, centre, 0.7, torch.tensor([3.0, -2.0]), cfg.radius_m)
     centre_odom = _odom_centre(centre, 0.7, torch.tensor([3.0, -2.0]))
-    volume = submap_scores(cmap, ground, centre_odom, CFG)
+    volume = submap_scores(cmap, ground, centre_odom, cfg)
     h, w = cmap.shape
-    side = 2 * math.ceil(CFG.radius_m / CFG.cell_m) + 1
+    side = 2 * math.ceil(cfg.radius_m / cfg.cell_m) + 1
     # the FFT's rounding: sums over the padded grid, relative to the correlation's scale
     tol = reassociation_tolerance(torch.float32, cmap.fft_shape[0] * cmap.fft_shape[1], side * side)
     gen = torch.Generator().manual_seed(3)
     for _ in range(12):
-        k = int(torch.randint(CFG.yaws, (1,), generator=gen))
+        k = int(torch.randint(cfg.yaws, (1,), generator=gen))
         row, col = (int(torch.randint(n, (1,), generator=gen)) for n in (h, w))
-        slow = _slow_pearson(cmap, ground, centre_odom, CFG, k, row, col)
+        slow = _slow_pearson(cmap, ground, centre_odom, cfg, k, row, col)
         assert abs(float(volume[k, row, col]) - slow) <= tol, (k, row, col)
 
 

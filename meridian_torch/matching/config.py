@@ -221,6 +221,12 @@ class CoarseSearchConfig(StrictModel):
         "KITTI 09 (7 Hz) world's first 16 submaps, single submaps: 4 classes and 1 class both rank the true "
         "patch at chance or worse (see README, coarse search)",
     )
+    orientation_bins: int = Field(
+        default=0,
+        ge=0,
+        description="line samples go to one raster per orientation bin over [0, pi) (0 = points and lines "
+        "share one raster); points always have their own raster when > 0",
+    )
     blur_cells: float = Field(default=1.0, ge=0, description="Gaussian blur sigma of both rasters, cells")
     min_window_energy: float = Field(
         default=1.0,

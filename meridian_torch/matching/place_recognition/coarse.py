@@ -99,12 +99,30 @@ def _line_samples(ends: torch.Tensor, step_m: float) -> tuple[torch.Tensor, torc
 def _primitive_points(
     points_xy: torch.Tensor, point_desc: torch.Tensor, line_ends: torch.Tensor, line_desc: torch.Tensor,
     centres: torch.Tensor, step_m: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points and sampled line points (M, 2) with their classes (M,)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points and sampled line points (M, 2), their descriptor classes (M,) and line angles (M,),
+    NaN for points."""
     samples, seg = _line_samples(line_ends.float(), step_m)
     xy = torch.cat([points_xy.float(), samples])
     cls = torch.cat([descriptor_classes(point_desc, centres), descriptor_classes(line_desc, centres)[seg]])
-    return xy, cls
+    d = line_ends[:, 1] - line_ends[:, 0]
+    angle = torch.atan2(d[:, 1], d[:, 0]).float()[seg]
+    return xy, cls, torch.cat([torch.full((len(points_xy),), float("nan")), angle])
+
+
+def _channels(cls: torch.Tensor, angle: torch.Tensor, cfg: CoarseSearchConfig) -> torch.Tensor:
+    """Raster channel of each sample: descriptor class x (one point channel + line orientation bins
+    over [0, pi)); `angle` may carry a leading yaw axis (it is the world angle)."""
+    bins = cfg.orientation_bins
+    if bins == 0:
+        return cls.expand(angle.shape)
+    per_class = 1 + bins
+    line_bin = 1 + ((torch.nan_to_num(angle) % math.pi) / math.pi * bins).long().clamp_max(bins - 1)
+    return cls * per_class + torch.where(torch.isnan(angle), 0, line_bin)
+
+
+def _n_channels(n_classes: int, cfg: CoarseSearchConfig) -> int:
+    return n_classes * (1 + cfg.orientation_bins) if cfg.orientation_bins else n_classes
 
 
 def _rasterise(xy: torch.Tensor, cls: torch.Tensor, origin: tuple[float, float], cell_m: float,
@@ -169,8 +187,9 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
     origin = (float(bounds[:, 0].min()) - margin, float(bounds[:, 2].min()) - margin)
     h = int(math.ceil((float(bounds[:, 3].max()) + margin - origin[1]) / cfg.cell_m))
     w = int(math.ceil((float(bounds[:, 1].max()) + margin - origin[0]) / cfg.cell_m))
-    xy, cls = _primitive_points(points, point_desc, lines, line_desc, centres, cfg.cell_m / 2)
-    grid = _blur(_rasterise(xy, cls, origin, cfg.cell_m, (h, w), len(centres)), cfg.blur_cells)
+    xy, cls, angle = _primitive_points(points, point_desc, lines, line_desc, centres, cfg.cell_m / 2)
+    n_channels = _n_channels(len(centres), cfg)
+    grid = _blur(_rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels), cfg.blur_cells)
     side = 2 * _radius_cells(cfg) + 1
     fft_shape = (_fast_size(h + side - 1), _fast_size(w + side - 1))
     # Cells owned by patches: the nearest centre among the patches containing the cell centre.
@@ -192,7 +211,7 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
     window = lambda x: torch.fft.irfft2(torch.fft.rfft2(x.double(), s=fft_shape) * disk, s=fft_shape)[  # noqa: E731
         r : r + h, r : r + w
     ]
-    n_window = len(centres) * float(_disk(cfg).sum())
+    n_window = n_channels * float(_disk(cfg).sum())
     energy = (window(grid.square().sum(0)) - window(grid.sum(0)).square() / n_window).clamp_min(0)
     return CoarseMap(
         origin_xy=origin,
@@ -221,7 +240,7 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     """
     r = _radius_cells(cfg)
     side = 2 * r + 1
-    xy, cls = _primitive_points(
+    xy, cls, angle = _primitive_points(
         ground.points_xy, ground.point_descriptors, ground.line_endpoints, ground.line_descriptors,
         cmap.class_centres, cfg.cell_m / 2,
     )
@@ -232,8 +251,9 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     rotated = torch.einsum("kij,nj->kni", rotation, xy)
     half = (r + 0.5) * cfg.cell_m
     disk = _disk(cfg)
-    n_classes = len(cmap.class_centres)
-    kernel = _blur(_rasterise(rotated, cls, (-half, -half), cfg.cell_m, (side, side), n_classes), cfg.blur_cells)
+    n_classes = _n_channels(len(cmap.class_centres), cfg)
+    channels = _channels(cls, angle + yaws[:, None], cfg)  # (K, M): line angles turn with the yaw
+    kernel = _blur(_rasterise(rotated, channels, (-half, -half), cfg.cell_m, (side, side), n_classes), cfg.blur_cells)
     kernel = kernel * disk
     n_window = n_classes * disk.sum()
     kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
