@@ -222,10 +222,13 @@ class CoarseSearchConfig(StrictModel):
         "patch at chance or worse (see README, coarse search)",
     )
     orientation_bins: int = Field(
-        default=0,
+        default=4,
         ge=0,
         description="line samples go to one raster per orientation bin over [0, pi) (0 = points and lines "
-        "share one raster); points always have their own raster when > 0",
+        "share one raster); points always have their own raster when > 0. KITTI 09 (7 Hz) world, first 16 "
+        "submaps, chain ranks of the true patch among 609: with 0 bins at chance throughout; with 4 bins "
+        "they fall to 63, 57, 37, 13, 4 over the last five submaps (8 bins: 53, 43, 14, 10, 2 at 1.8x "
+        "the cost). 4 m cells lose it (ranks 104-40)",
     )
     blur_cells: float = Field(default=1.0, ge=0, description="Gaussian blur sigma of both rasters, cells")
     min_window_energy: float = Field(

@@ -259,7 +259,9 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
     kernel_norm = kernel.flatten(1).norm(dim=1)  # (K,)
     fh, fw = cmap.fft_shape
-    flipped = torch.fft.rfft2(torch.flip(kernel, (-2, -1)), s=(fh, fw))  # correlation = convolution with flip
+    # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the first over
+    # the kernel's few rows only (the padded rows are zero)
+    flipped = torch.fft.fft(torch.fft.rfft(torch.flip(kernel, (-2, -1)), n=fw, dim=-1), n=fh, dim=-2)
     corr = torch.fft.irfft2((cmap.map_spectrum[None] * flipped).sum(1), s=(fh, fw))
     h, w = cmap.shape
     corr = corr[:, r : r + h, r : r + w]  # full convolution index n = cell + r
