@@ -4,7 +4,8 @@ For every ground submap of a sequence: the rank of the true patch (the patch con
 position whose centre is nearest) among all patches, for single submaps and for the odometry chain,
 the yaw error of the best cell of the true patch, and the time per submap. Larger maps are made of
 the real map plus decoy copies of it, mirrored (a mirror image cannot be matched by a rotation),
-placed beside it (`--decoys 3` = x-, y- and xy-mirrored copies, four times the patches).
+tiled beside it on a square grid (`--decoys 3` = x-, y- and xy-mirrored copies, four times the
+patches; more decoys repeat the three mirrors at other places).
 
     PYTHONPATH=$PWD python scripts/bench_place_recognition.py /work/runs/coarse/kitti02 \\
         -c configs/kitti02.yaml --submaps /work/runs/coarse/kitti02/submaps.pt --threads 1
@@ -79,7 +80,8 @@ def with_decoys(batch: PrimitiveBatch, bounds: np.ndarray, n_decoys: int) -> tup
     flips = [(-1, 1), (1, -1), (-1, -1)]
     for d in range(n_decoys):
         fx, fy = flips[d % 3]
-        offset = np.array([(d + 1) * span[0], 0.0]) if d % 2 == 0 else np.array([0.0, (d + 1) * span[1]])
+        side = math.ceil(math.sqrt(n_decoys + 1))  # tiles on a square grid, the real map at (0, 0)
+        offset = np.array([(d + 1) % side, (d + 1) // side]) * span
         scale = torch.tensor([fx, fy], dtype=batch.points_xy.dtype)
         centre = torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=batch.points_xy.dtype)
         shift = torch.as_tensor(offset, dtype=batch.points_xy.dtype)

@@ -33,6 +33,7 @@ __all__ = [
 ]
 
 _CELL_CHUNK = 1 << 15  # cells assigned to patches at a time (bounds the cells x patches distance matrix)
+_SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
 
 
 @dataclass(frozen=True)
@@ -261,10 +262,16 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     fh, fw = cmap.fft_shape
     # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the first over
     # the kernel's few rows only (the padded rows are zero)
-    flipped = torch.fft.fft(torch.fft.rfft(torch.flip(kernel, (-2, -1)), n=fw, dim=-1), n=fh, dim=-2)
-    corr = torch.fft.irfft2((cmap.map_spectrum[None] * flipped).sum(1), s=(fh, fw))
     h, w = cmap.shape
-    corr = corr[:, r : r + h, r : r + w]  # full convolution index n = cell + r
+    per_yaw = n_classes * fh * (fw // 2 + 1) * 8  # bytes of one yaw's kernel spectra
+    corr = torch.cat([  # yaws in chunks: bounds the spectra's memory on large maps
+        torch.fft.irfft2(
+            torch.einsum("chw,kchw->khw", cmap.map_spectrum,
+                         torch.fft.fft(torch.fft.rfft(torch.flip(part, (-2, -1)), n=fw, dim=-1), n=fh, dim=-2)),
+            s=(fh, fw),
+        )[:, r : r + h, r : r + w]  # full convolution index n = cell + r
+        for part in kernel.split(max(1, _SPECTRUM_BYTES // per_yaw))
+    ])
     denominator = kernel_norm[:, None, None] * cmap.window_energy.sqrt()[None]
     ok = (cmap.window_energy >= cfg.min_window_energy)[None] & (kernel_norm > 0)[:, None, None]
     return torch.where(ok, corr / torch.where(ok, denominator, 1.0), 0.0)
