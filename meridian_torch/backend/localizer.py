@@ -170,8 +170,8 @@ class Localizer:
     ) -> None:
         if cfg.matching.place_recognition.mode == "near":
             raise ConfigError(
-                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'global' or 'exhaustive' "
-                "for localization (the localizer switches to 'near' by itself after the fix)"
+                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'coarse', 'global' or "
+                "'exhaustive' for localization (the localizer switches to 'near' by itself after the fix)"
             )
         frame_times = np.asarray(frame_times, dtype=np.float64)
         if frame_times.ndim != 1 or len(frame_times) == 0 or np.any(np.diff(frame_times) <= 0):
