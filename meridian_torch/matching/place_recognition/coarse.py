@@ -32,7 +32,7 @@ __all__ = [
     "submap_scores",
 ]
 
-_CELL_CHUNK = 1 << 15  # cells assigned to patches at a time (bounds the cells x patches distance matrix)
+_CELL_PATCH_PAIRS = 1 << 24  # (cell, patch) distances computed at once when cells are given to patches
 _SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
 
 
@@ -200,7 +200,7 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
     cell_xy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
     patch_centres = torch.stack([(bounds[:, 0] + bounds[:, 1]) / 2, (bounds[:, 2] + bounds[:, 3]) / 2], -1)
     owner = []
-    for chunk in cell_xy.split(_CELL_CHUNK):  # memory bound only; each chunk is fully batched
+    for chunk in cell_xy.split(max(1, _CELL_PATCH_PAIRS // len(bounds))):  # memory bound only
         x, y = chunk[:, 0:1], chunk[:, 1:2]
         inside = (x >= bounds[:, 0]) & (x <= bounds[:, 1]) & (y >= bounds[:, 2]) & (y <= bounds[:, 3])
         dist = torch.cdist(chunk, patch_centres).masked_fill(~inside, float("inf"))
