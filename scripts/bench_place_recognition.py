@@ -110,6 +110,7 @@ def main() -> None:
     ap.add_argument("--map", type=Path, help="aerial map (default SEQUENCE/aerial.mtm)")
     ap.add_argument("--submaps", type=Path, help="cache file of the ground submaps")
     ap.add_argument("--max-frames", type=int)
+    ap.add_argument("--limit", type=int, help="only the first LIMIT submaps (cost on very large maps)")
     ap.add_argument("--decoys", type=int, nargs="+", default=[0], help="mirrored decoy copies, one run each")
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. "
                     "matching.place_recognition.coarse.classes=4")
@@ -121,7 +122,7 @@ def main() -> None:
     ccfg = cfg.matching.place_recognition.coarse
     amap = load_aerial_map(args.map or args.sequence / "aerial.mtm")
     reader = SequenceReader(args.sequence)
-    submaps = load_submaps(args.sequence, cfg, args.submaps, args.max_frames)
+    submaps = load_submaps(args.sequence, cfg, args.submaps, args.max_frames)[: args.limit]
     gt = reader.groundtruth
     origin = np.asarray(getattr(amap, "local_origin_xy", (0.0, 0.0)), dtype=np.float64)
     truth = []
