@@ -417,3 +417,17 @@ def test_cached_pool_graph_matches_a_fresh_one(run) -> None:
     fi, fj, fv = sparse_affinity(loc.pool, loc.cfg.backend)
     assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(fi.tolist(), fj.tolist()))
     assert torch.allclose(v.sort().values, fv.sort().values)
+
+
+def test_auto_mode_above_the_exhaustive_limit_matches_the_coarse_search_candidates() -> None:
+    from meridian_torch.core.timing import record_stages
+
+    world = World(seed=2, n_frames=120)
+    cfg = _cfg(final_rematch=False)
+    pr = cfg.matching.place_recognition.model_copy(update={"mode": "auto", "exhaustive_max_patches": 4, "k_coarse": 3})
+    cfg = cfg.model_copy(update={"matching": cfg.matching.model_copy(update={"place_recognition": pr})})
+    loc = Localizer(make_map(), cfg, world.odometry, world.times, matcher=world.matcher)
+    with record_stages() as times:
+        events = [loc.add_submap(s) for s in world.submaps()[:3]]
+    assert [e.n_patches for e in events] == [3, 3, 3]
+    assert times.calls["place recognition/coarse map"] == 1 and times.calls["place recognition/coarse search"] == 3

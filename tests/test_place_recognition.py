@@ -37,12 +37,20 @@ def test_exhaustive_mode_lists_every_patch() -> None:
     assert idx.shape == (3, 7) and valid.all() and idx[2].tolist() == list(range(7))
 
 
-def test_auto_mode_is_exhaustive_on_small_maps_and_global_on_large_ones() -> None:
-    cfg = PlaceRecognitionConfig(mode="auto", k_global=2, exhaustive_max_patches=4)
-    sim = torch.tensor([[0.1, 0.9, 0.5, 0.3, 0.2]])
-    idx, valid = select_patches(cfg, 1, 4, similarity=sim[:, :4])
+def test_auto_mode_is_exhaustive_on_small_maps_and_coarse_on_large_ones() -> None:
+    cfg = PlaceRecognitionConfig(mode="auto", k_coarse=2, exhaustive_max_patches=4)
+    scores = torch.tensor([[0.1, 0.9, 0.5, 0.3, float("-inf")]])
+    idx, valid = select_patches(cfg, 1, 4, coarse_scores=scores[:, :4])
     assert idx[0].tolist() == [0, 1, 2, 3] and valid.all()
-    idx, valid = select_patches(cfg, 1, 5, similarity=sim)
+    idx, valid = select_patches(cfg, 1, 5, coarse_scores=scores)
+    assert idx[0].tolist() == [1, 2] and valid.all()
+    with pytest.raises(ValueError, match="coarse"):
+        select_patches(cfg, 1, 5)
+
+
+def test_global_mode_takes_the_top_k_by_similarity() -> None:
+    cfg = PlaceRecognitionConfig(mode="global", k_global=2)
+    idx, valid = select_patches(cfg, 1, 5, similarity=torch.tensor([[0.1, 0.9, 0.5, 0.3, 0.2]]))
     assert idx[0].tolist() == [1, 2] and valid.all()
     with pytest.raises(ValueError, match="similarity"):
         select_patches(cfg, 1, 5)

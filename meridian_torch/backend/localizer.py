@@ -47,7 +47,7 @@ from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.match import match_submap
-from meridian_torch.matching.place_recognition import resolved_mode, select_patches, stack_similarity
+from meridian_torch.matching.place_recognition import CoarseSearch, resolved_mode, select_patches, stack_similarity
 from meridian_torch.types import GroundSubmap, PrimitiveBatch, PrimitiveSet
 
 __all__ = ["LocalizationResult", "Localizer", "LocalizerEvent", "Matcher", "lift_se2", "localize_offline"]
@@ -170,8 +170,8 @@ class Localizer:
     ) -> None:
         if cfg.matching.place_recognition.mode == "near":
             raise ConfigError(
-                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'global' or 'exhaustive' "
-                "for localization (the localizer switches to 'near' by itself after the fix)"
+                "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'coarse', 'global' or "
+                "'exhaustive' for localization (the localizer switches to 'near' by itself after the fix)"
             )
         frame_times = np.asarray(frame_times, dtype=np.float64)
         if frame_times.ndim != 1 or len(frame_times) == 0 or np.any(np.diff(frame_times) <= 0):
@@ -207,6 +207,7 @@ class Localizer:
         self._timer = _Timer()
         # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
         self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
+        self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
 
     # ------------------------------------------------------------------ matching
     def _node_of(self, t: float) -> int:
@@ -240,7 +241,15 @@ class Localizer:
             frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
             valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
             similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
-        idx, ok = select_patches(pr, 1, n_patches, similarity=similarity)
+        coarse_scores = None
+        if resolved_mode(pr, n_patches) == "coarse":
+            if self._coarse is None:
+                with stage("coarse map"):
+                    self._coarse = CoarseSearch(self.aerial_map.primitives, self._patch_bounds, pr.coarse)
+            with stage("coarse search"):
+                centre = torch.as_tensor(submap.T_odom_base[:2, 3])
+                coarse_scores = self._coarse.add_submap(submap.primitives, centre).score[None]
+        idx, ok = select_patches(pr, 1, n_patches, similarity=similarity, coarse_scores=coarse_scores)
         return idx[0][ok[0]].cpu()
 
     def _near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:

@@ -1,9 +1,10 @@
-"""Choosing the aerial patches a ground submap is matched against (batched over submaps).
+"""Patch selection by global descriptors, exhaustively or near a position (batched over submaps).
 
 - global: the top-K patches by the maximum cosine similarity between the patch descriptor and
   any descriptor of the submap's frame stack (the paper's place recognition);
 - exhaustive: every patch (small maps, where matching all is affordable);
-- auto: exhaustive up to `exhaustive_max_patches` patches, else global;
+- coarse: the top-K patches by the coarse search's scores (`place_recognition.coarse`);
+- auto: exhaustive up to `exhaustive_max_patches` patches, else coarse;
 - near: the patches whose squares overlap most with a disk around a predicted position
   (after a global fix).
 """
@@ -47,10 +48,10 @@ def disk_overlap(centres_xy: torch.Tensor, radius_m: float, bounds_xy: torch.Ten
 
 
 def resolved_mode(cfg: PlaceRecognitionConfig, n_patches: int) -> str:
-    """The mode `cfg` means on a map of `n_patches` patches ('auto' becomes 'exhaustive' or 'global')."""
+    """The mode `cfg` means on a map of `n_patches` patches ('auto' becomes 'exhaustive' or 'coarse')."""
     if cfg.mode != "auto":
         return cfg.mode
-    return "exhaustive" if n_patches <= cfg.exhaustive_max_patches else "global"
+    return "exhaustive" if n_patches <= cfg.exhaustive_max_patches else "coarse"
 
 
 def select_patches(
@@ -59,12 +60,14 @@ def select_patches(
     n_patches: int,
     *,
     similarity: torch.Tensor | None = None,
+    coarse_scores: torch.Tensor | None = None,
     predicted_xy: torch.Tensor | None = None,
     patch_bounds_xy: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Patch indices (S, K) and their validity (S, K) for S = n_submaps submaps, by `cfg.mode`.
 
-    'global' needs `similarity` (S, P) from `stack_similarity`; 'near' needs `predicted_xy` (S, 2)
+    'global' needs `similarity` (S, P) from `stack_similarity`; 'coarse' needs `coarse_scores` (S, P)
+    (`CoarsePriors.score`); 'near' needs `predicted_xy` (S, 2)
     and `patch_bounds_xy` (P, 4); 'exhaustive' needs only `n_patches`; 'auto' needs what the mode
     it resolves to needs (`resolved_mode`). Indices are sorted best first; invalid entries (patches
     with -inf similarity or no overlap) have validity False.
@@ -78,6 +81,11 @@ def select_patches(
             raise ValueError("place recognition mode 'global' needs the similarity matrix")
         k = min(cfg.k_global, similarity.shape[1])
         score, idx = similarity.topk(k, dim=1)
+        return idx, torch.isfinite(score)
+    if mode == "coarse":
+        if coarse_scores is None:
+            raise ValueError("place recognition mode 'coarse' needs the coarse search's patch scores")
+        score, idx = coarse_scores.topk(min(cfg.k_coarse, coarse_scores.shape[1]), dim=1)
         return idx, torch.isfinite(score)
     if predicted_xy is None or patch_bounds_xy is None:
         raise ValueError("place recognition mode 'near' needs predicted_xy and patch_bounds_xy")

@@ -1,0 +1,346 @@
+"""Weight-free coarse global search: every map position and yaw scored for one ground submap.
+
+The aerial map's points and sampled line points are rasterised once into per-class occupancy
+grids (classes: descriptor clusters, `CoarseSearchConfig.classes`), blurred and Fourier
+transformed. A submap is rasterised around its centre at every yaw of a grid and correlated
+with the whole map by FFT, normalised per window (Pearson correlation over the submap's disk),
+giving a (yaws, H, W) score volume over (T_world_odom yaw, submap centre cell). Successive
+submaps share T_world_odom up to odometry drift, so a chain of submaps is scored jointly by a
+recursive filter: the previous chain volume, max-pooled by the drift slack, is shifted by the
+odometry step (rotated by each yaw) and added with a decay. A patch scores the best value of the
+cells it owns (cells go to the nearest patch centre among the patches containing them).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from meridian_torch.matching.config import CoarseSearchConfig
+from meridian_torch.types import PrimitiveBatch, PrimitiveSet
+
+__all__ = [
+    "CoarseMap",
+    "CoarsePriors",
+    "CoarseSearch",
+    "build_coarse_map",
+    "chain_scores",
+    "descriptor_classes",
+    "patch_priors",
+    "submap_scores",
+]
+
+_CELL_PATCH_PAIRS = 1 << 24  # (cell, patch) distances computed at once when cells are given to patches
+_SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
+
+
+@dataclass(frozen=True)
+class CoarseMap:
+    """The aerial map prepared for the coarse search (built once per map).
+
+    Cell (row, col) covers x in origin_x + col * cell_m + [0, cell_m), y likewise with row.
+    """
+
+    origin_xy: tuple[float, float]
+    cell_m: float
+    shape: tuple[int, int]  # (H, W)
+    fft_shape: tuple[int, int]  # zero-padded size of the correlations (no wrap-around)
+    map_spectrum: torch.Tensor  # (C, fh, fw // 2 + 1) rfft2 of the blurred class grids
+    window_energy: torch.Tensor  # (H, W) sum of squared deviations of the grid in the disk around each cell
+    cell_patch: torch.Tensor  # (H * W,) int64 patch owning each cell, -1 off the map
+    class_centres: torch.Tensor  # (C, D) unit descriptor cluster centres (C = 1: zeros)
+    n_patches: int
+
+
+@dataclass(frozen=True)
+class CoarsePriors:
+    """Per patch (P,): best score, the yaw of T_world_odom and the submap centre where it was found."""
+
+    score: torch.Tensor  # (P,) -inf for patches owning no cell
+    yaw: torch.Tensor  # (P,) radians
+    centre_xy: torch.Tensor  # (P, 2) metres, map frame
+
+
+def descriptor_classes(descriptors: torch.Tensor, class_centres: torch.Tensor) -> torch.Tensor:
+    """(N, D) descriptors -> (N,) int64 index of the most cosine-similar class centre."""
+    if len(class_centres) == 1:
+        return torch.zeros(len(descriptors), dtype=torch.int64, device=descriptors.device)
+    return (torch.nn.functional.normalize(descriptors.float(), dim=-1) @ class_centres.T).argmax(-1)
+
+
+def _class_centres(descriptors: torch.Tensor, n_classes: int, seed: int) -> torch.Tensor:
+    """Spherical k-means (farthest-point start from a seeded first centre, fixed iterations)."""
+    x = torch.nn.functional.normalize(descriptors.float(), dim=-1)
+    if n_classes == 1 or len(x) == 0:
+        return x.new_zeros(1, x.shape[1])
+    k = min(n_classes, len(x))
+    first = int(torch.randint(len(x), (1,), generator=torch.Generator().manual_seed(seed)))
+    centres = x[first : first + 1]
+    for _ in range(1, k):  # k is a handful: start from well-separated centres
+        centres = torch.cat([centres, x[(x @ centres.T).amax(1).argmin()][None]])
+    for _ in range(20):
+        labels = (x @ centres.T).argmax(1)
+        sums = torch.zeros_like(centres).index_add_(0, labels, x)
+        centres = torch.where(sums.norm(dim=1, keepdim=True) > 0, torch.nn.functional.normalize(sums, dim=1), centres)
+    return centres
+
+
+def _line_samples(ends: torch.Tensor, step_m: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 2, 2) segments -> points every <= step_m along them (M, 2) and their segment (M,)."""
+    length = (ends[:, 1] - ends[:, 0]).norm(dim=-1)
+    n = (length / step_m).ceil().long().clamp_min(1) + 1
+    seg = torch.repeat_interleave(torch.arange(len(ends), device=ends.device), n)
+    k = torch.arange(len(seg), device=ends.device) - (torch.cumsum(n, 0) - n)[seg]
+    t = (k.to(ends.dtype) / (n[seg] - 1).to(ends.dtype))[:, None]
+    return ends[seg, 0] + t * (ends[seg, 1] - ends[seg, 0]), seg
+
+
+def _primitive_points(
+    points_xy: torch.Tensor, point_desc: torch.Tensor, line_ends: torch.Tensor, line_desc: torch.Tensor,
+    centres: torch.Tensor, step_m: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points and sampled line points (M, 2), their descriptor classes (M,) and line angles (M,),
+    NaN for points."""
+    samples, seg = _line_samples(line_ends.float(), step_m)
+    xy = torch.cat([points_xy.float(), samples])
+    cls = torch.cat([descriptor_classes(point_desc, centres), descriptor_classes(line_desc, centres)[seg]])
+    d = line_ends[:, 1] - line_ends[:, 0]
+    angle = torch.atan2(d[:, 1], d[:, 0]).float()[seg]
+    return xy, cls, torch.cat([torch.full((len(points_xy),), float("nan")), angle])
+
+
+def _channels(cls: torch.Tensor, angle: torch.Tensor, cfg: CoarseSearchConfig) -> torch.Tensor:
+    """Raster channel of each sample: descriptor class x (one point channel + line orientation bins
+    over [0, pi)); `angle` may carry a leading yaw axis (it is the world angle)."""
+    bins = cfg.orientation_bins
+    if bins == 0:
+        return cls.expand(angle.shape)
+    per_class = 1 + bins
+    line_bin = 1 + ((torch.nan_to_num(angle) % math.pi) / math.pi * bins).long().clamp_max(bins - 1)
+    return cls * per_class + torch.where(torch.isnan(angle), 0, line_bin)
+
+
+def _n_channels(n_classes: int, cfg: CoarseSearchConfig) -> int:
+    return n_classes * (1 + cfg.orientation_bins) if cfg.orientation_bins else n_classes
+
+
+def _rasterise(xy: torch.Tensor, cls: torch.Tensor, origin: tuple[float, float], cell_m: float,
+               shape: tuple[int, int], n_classes: int) -> torch.Tensor:
+    """(..., M, 2) points with (M,) classes -> (..., C, H, W) occupancy (1 where a point falls)."""
+    h, w = shape
+    col = ((xy[..., 0] - origin[0]) / cell_m).floor().long()
+    row = ((xy[..., 1] - origin[1]) / cell_m).floor().long()
+    lead = xy.shape[:-2]
+    batch = torch.arange(math.prod(lead), device=xy.device).view(*lead, 1)
+    flat = ((batch * n_classes + cls) * h + row) * w + col
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    out = torch.zeros(math.prod(lead) * n_classes * h * w, device=xy.device)
+    out.index_fill_(0, flat[ok], 1.0)
+    return out.view(*lead, n_classes, h, w)
+
+
+def _blur(x: torch.Tensor, sigma_cells: float) -> torch.Tensor:
+    """Separable Gaussian blur of the last two axes."""
+    if sigma_cells <= 0:
+        return x
+    r = int(math.ceil(3 * sigma_cells))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / sigma_cells) ** 2)
+    k = k / k.sum()
+    y = x.reshape(-1, 1, *x.shape[-2:])
+    y = torch.nn.functional.conv2d(y, k.view(1, 1, 1, -1), padding=(0, r))
+    y = torch.nn.functional.conv2d(y, k.view(1, 1, -1, 1), padding=(r, 0))
+    return y.reshape(x.shape)
+
+
+def _fast_size(n: int) -> int:
+    """Smallest m >= n whose only prime factors are 2, 3 and 5 (fast FFT lengths)."""
+    while True:
+        m = n
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
+
+
+def _radius_cells(cfg: CoarseSearchConfig) -> int:
+    return int(math.ceil(cfg.radius_m / cfg.cell_m))
+
+
+def _disk(cfg: CoarseSearchConfig) -> torch.Tensor:
+    r = _radius_cells(cfg)
+    u = torch.arange(-r, r + 1)
+    return ((u[:, None] ** 2 + u[None] ** 2) <= r * r).float()
+
+
+def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> CoarseMap:
+    """Rasterise, blur and transform the aerial map's primitives (P patches, `bounds_xy` (P, 4))."""
+    bounds = torch.as_tensor(bounds_xy, dtype=torch.float64)
+    points = primitives.points_xy[primitives.point_valid]
+    point_desc = primitives.point_descriptors[primitives.point_valid]
+    lines = primitives.line_endpoints[primitives.line_valid]
+    line_desc = primitives.line_descriptors[primitives.line_valid]
+    centres = _class_centres(torch.cat([point_desc, line_desc]), cfg.classes, cfg.seed)
+    margin = cfg.radius_m
+    origin = (float(bounds[:, 0].min()) - margin, float(bounds[:, 2].min()) - margin)
+    h = int(math.ceil((float(bounds[:, 3].max()) + margin - origin[1]) / cfg.cell_m))
+    w = int(math.ceil((float(bounds[:, 1].max()) + margin - origin[0]) / cfg.cell_m))
+    xy, cls, angle = _primitive_points(points, point_desc, lines, line_desc, centres, cfg.cell_m / 2)
+    n_channels = _n_channels(len(centres), cfg)
+    grid = _blur(_rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels), cfg.blur_cells)
+    side = 2 * _radius_cells(cfg) + 1
+    fft_shape = (_fast_size(h + side - 1), _fast_size(w + side - 1))
+    # Cells owned by patches: the nearest centre among the patches containing the cell centre.
+    cy = origin[1] + (torch.arange(h, dtype=torch.float64) + 0.5) * cfg.cell_m
+    cx = origin[0] + (torch.arange(w, dtype=torch.float64) + 0.5) * cfg.cell_m
+    gy, gx = torch.meshgrid(cy, cx, indexing="ij")
+    cell_xy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+    patch_centres = torch.stack([(bounds[:, 0] + bounds[:, 1]) / 2, (bounds[:, 2] + bounds[:, 3]) / 2], -1)
+    owner = []
+    for chunk in cell_xy.split(max(1, _CELL_PATCH_PAIRS // len(bounds))):  # memory bound only
+        x, y = chunk[:, 0:1], chunk[:, 1:2]
+        inside = (x >= bounds[:, 0]) & (x <= bounds[:, 1]) & (y >= bounds[:, 2]) & (y <= bounds[:, 3])
+        dist = torch.cdist(chunk, patch_centres).masked_fill(~inside, float("inf"))
+        best = dist.argmin(1)
+        owner.append(torch.where(inside.any(1), best, torch.full_like(best, -1)))
+    # Window energy in float64: it cancels sum(a^2) - sum(a)^2 / n, which float32 FFTs cannot.
+    r = _radius_cells(cfg)
+    disk = torch.fft.rfft2(_disk(cfg).double(), s=fft_shape)
+    window = lambda x: torch.fft.irfft2(torch.fft.rfft2(x.double(), s=fft_shape) * disk, s=fft_shape)[  # noqa: E731
+        r : r + h, r : r + w
+    ]
+    n_window = n_channels * float(_disk(cfg).sum())
+    energy = (window(grid.square().sum(0)) - window(grid.sum(0)).square() / n_window).clamp_min(0)
+    return CoarseMap(
+        origin_xy=origin,
+        cell_m=cfg.cell_m,
+        shape=(h, w),
+        fft_shape=fft_shape,
+        map_spectrum=torch.fft.rfft2(grid, s=fft_shape),
+        window_energy=energy.float(),
+        cell_patch=torch.cat(owner),
+        class_centres=centres,
+        n_patches=len(bounds),
+    )
+
+
+def _yaws(cfg: CoarseSearchConfig) -> torch.Tensor:
+    return torch.arange(cfg.yaws, dtype=torch.float32) * (2 * math.pi / cfg.yaws)
+
+
+def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.Tensor,
+                  cfg: CoarseSearchConfig) -> torch.Tensor:
+    """(yaws, H, W) Pearson correlation of the submap (odom frame, centred at `centre_odom_xy`)
+    rotated by each yaw and centred on each cell, with the map inside the submap's disk.
+
+    A submap without primitives scores 0 everywhere, and so do cells whose window holds less
+    than `min_window_energy` (empty or nearly empty map).
+    """
+    r = _radius_cells(cfg)
+    side = 2 * r + 1
+    xy, cls, angle = _primitive_points(
+        ground.points_xy, ground.point_descriptors, ground.line_endpoints, ground.line_descriptors,
+        cmap.class_centres, cfg.cell_m / 2,
+    )
+    xy = xy - centre_odom_xy.float()
+    yaws = _yaws(cfg)
+    c, s = torch.cos(yaws), torch.sin(yaws)
+    rotation = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)  # (K, 2, 2)
+    rotated = torch.einsum("kij,nj->kni", rotation, xy)
+    half = (r + 0.5) * cfg.cell_m
+    disk = _disk(cfg)
+    n_classes = _n_channels(len(cmap.class_centres), cfg)
+    channels = _channels(cls, angle + yaws[:, None], cfg)  # (K, M): line angles turn with the yaw
+    kernel = _blur(_rasterise(rotated, channels, (-half, -half), cfg.cell_m, (side, side), n_classes), cfg.blur_cells)
+    kernel = kernel * disk
+    n_window = n_classes * disk.sum()
+    kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
+    kernel_norm = kernel.flatten(1).norm(dim=1)  # (K,)
+    fh, fw = cmap.fft_shape
+    # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the first over
+    # the kernel's few rows only (the padded rows are zero)
+    h, w = cmap.shape
+    per_yaw = n_classes * fh * (fw // 2 + 1) * 8  # bytes of one yaw's kernel spectra
+    corr = torch.cat([  # yaws in chunks: bounds the spectra's memory on large maps
+        torch.fft.irfft2(
+            torch.einsum("chw,kchw->khw", cmap.map_spectrum,
+                         torch.fft.fft(torch.fft.rfft(torch.flip(part, (-2, -1)), n=fw, dim=-1), n=fh, dim=-2)),
+            s=(fh, fw),
+        )[:, r : r + h, r : r + w]  # full convolution index n = cell + r
+        for part in kernel.split(max(1, _SPECTRUM_BYTES // per_yaw))
+    ])
+    denominator = kernel_norm[:, None, None] * cmap.window_energy.sqrt()[None]
+    ok = (cmap.window_energy >= cfg.min_window_energy)[None] & (kernel_norm > 0)[:, None, None]
+    return torch.where(ok, corr / torch.where(ok, denominator, 1.0), 0.0)
+
+
+def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_xy: torch.Tensor,
+                 cmap: CoarseMap, cfg: CoarseSearchConfig) -> torch.Tensor:
+    """The chain volume (yaws, H, W) after one more submap: `scores` plus the decayed previous chain,
+    max-pooled over the drift slack (cells and neighbouring yaws) and moved by the odometry step
+    from the previous submap centre (`step_odom_xy`, odom frame) rotated by each yaw.
+    """
+    if previous is None or cfg.chain_decay == 0:
+        return scores
+    k = int(math.ceil(cfg.chain_slack_m / cfg.cell_m))
+    pooled = torch.nn.functional.max_pool2d(previous[None], 2 * k + 1, stride=1, padding=k)[0]
+    pooled = torch.maximum(pooled, torch.maximum(pooled.roll(1, 0), pooled.roll(-1, 0)))  # yaw is circular
+    yaws = _yaws(cfg)
+    step = step_odom_xy.float()
+    shift_x = torch.cos(yaws) * step[0] - torch.sin(yaws) * step[1]
+    shift_y = torch.sin(yaws) * step[0] + torch.cos(yaws) * step[1]
+    h, w = cmap.shape
+    # grid_sample reads the previous volume at cell - shift, in normalised [-1, 1] coordinates.
+    theta = torch.zeros(len(yaws), 2, 3)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0
+    theta[:, 0, 2] = -shift_x / cfg.cell_m * 2 / w
+    theta[:, 1, 2] = -shift_y / cfg.cell_m * 2 / h
+    grid = torch.nn.functional.affine_grid(theta, [len(yaws), 1, h, w], align_corners=False)
+    moved = torch.nn.functional.grid_sample(
+        pooled[:, None], grid, mode="nearest", padding_mode="zeros", align_corners=False
+    )[:, 0]
+    return scores + cfg.chain_decay * moved
+
+
+def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig) -> CoarsePriors:
+    """Best score of each patch over its cells and all yaws, with the yaw and centre where it is."""
+    best, best_yaw = volume.amax(0).reshape(-1), volume.argmax(0).reshape(-1)
+    on_map = cmap.cell_patch >= 0
+    owner = cmap.cell_patch.clamp_min(0)
+    value = torch.where(on_map, best, float("-inf"))
+    score = torch.full((cmap.n_patches,), float("-inf")).scatter_reduce(0, owner, value, "amax")
+    # first cell reaching its patch's best score (deterministic tie-break)
+    cell = torch.arange(len(value))
+    winner = on_map & (value == score[owner])
+    first = torch.full((cmap.n_patches,), len(value)).scatter_reduce(
+        0, owner, torch.where(winner, cell, len(value)), "amin"
+    ).clamp_max(len(value) - 1)
+    w = cmap.shape[1]
+    row, col = first // w, first % w
+    centre = torch.stack([
+        cmap.origin_xy[0] + (col.double() + 0.5) * cmap.cell_m,
+        cmap.origin_xy[1] + (row.double() + 0.5) * cmap.cell_m,
+    ], -1)
+    return CoarsePriors(score=score, yaw=_yaws(cfg)[best_yaw[first]], centre_xy=centre)
+
+
+class CoarseSearch:
+    """The coarse search over one map for a robot's successive submaps (holds the chain volume)."""
+
+    def __init__(self, primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> None:
+        self.cfg = cfg
+        self.map = build_coarse_map(primitives, bounds_xy, cfg)
+        self._chain: torch.Tensor | None = None
+        self._previous_centre: torch.Tensor | None = None
+
+    def add_submap(self, ground: PrimitiveSet, centre_odom_xy: torch.Tensor) -> CoarsePriors:
+        """Score the next submap (odom frame, centred at `centre_odom_xy`) chained with the earlier ones."""
+        centre = torch.as_tensor(centre_odom_xy, dtype=torch.float64).cpu()
+        single = submap_scores(self.map, ground.to(device="cpu"), centre, self.cfg)
+        step = centre - self._previous_centre if self._previous_centre is not None else torch.zeros(2)
+        self._chain = chain_scores(self._chain, single, step, self.map, self.cfg)
+        self._previous_centre = centre
+        return patch_priors(self.map, self._chain, self.cfg)

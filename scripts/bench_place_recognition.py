@@ -1,0 +1,175 @@
+"""Recall and cost of the coarse global search (issue 16) against maps of growing size.
+
+For every ground submap of a sequence: the rank of the true patch (the patch containing the true
+position whose centre is nearest) among all patches, for single submaps and for the odometry chain,
+the yaw error of the best cell of the true patch, and the time per submap. Larger maps are made of
+the real map plus decoy copies of it, mirrored (a mirror image cannot be matched by a rotation),
+tiled beside it on a square grid (`--decoys 3` = x-, y- and xy-mirrored copies, four times the
+patches; more decoys repeat the three mirrors at other places).
+
+    PYTHONPATH=$PWD python scripts/bench_place_recognition.py /work/runs/coarse/kitti02 \\
+        -c configs/kitti02.yaml --submaps /work/runs/coarse/kitti02/submaps.pt --threads 1
+
+Submaps are built with the config's ground mapping on the first run and cached (`--submaps`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from exp_registration import containing_patch, true_T_world_odom  # noqa: E402
+
+from meridian_torch.config import load_config  # noqa: E402
+from meridian_torch.geometry.trajectory import interpolate_poses  # noqa: E402
+from meridian_torch.io.map_file import load_aerial_map  # noqa: E402
+from meridian_torch.io.sequence import SequenceReader  # noqa: E402
+from meridian_torch.matching.place_recognition import (  # noqa: E402
+    build_coarse_map,
+    chain_scores,
+    patch_priors,
+    submap_scores,
+)
+from meridian_torch.types import PrimitiveBatch  # noqa: E402
+
+
+def load_submaps(seq: Path, cfg, cache: Path | None, max_frames: int | None):
+    if cache is not None and cache.exists():
+        return torch.load(cache, weights_only=False)
+    from meridian_torch.mapping.ground_map import map_ground
+    from meridian_torch.runtime import resolve_runtime
+
+    reader = SequenceReader(seq)
+
+    class Prefix:  # the first max_frames frames of the sequence
+        def __init__(self, r, n):
+            self.r, self.n, self.camera = r, n, r.camera
+
+        def __len__(self):
+            return self.n
+
+        def __getitem__(self, i):
+            return self.r[i]
+
+    source = Prefix(reader, min(max_frames or len(reader), len(reader)))
+    submaps = map_ground(source, cfg, resolve_runtime(cfg.runtime))
+    if cache is not None:
+        torch.save(submaps, cache)
+    return submaps
+
+
+def _pad(x: torch.Tensor, n: int) -> torch.Tensor:
+    pad = [0, 0] * (x.dim() - 2) + [0, n - x.shape[1]]
+    return torch.nn.functional.pad(x, pad)
+
+
+def with_decoys(batch: PrimitiveBatch, bounds: np.ndarray, n_decoys: int) -> tuple[PrimitiveBatch, np.ndarray]:
+    """The map plus `n_decoys` mirrored copies placed beside it (x-, y-, xy-mirrored, then repeats)."""
+    x0, x1, y0, y1 = bounds[:, 0].min(), bounds[:, 1].max(), bounds[:, 2].min(), bounds[:, 3].max()
+    span = np.array([x1 - x0, y1 - y0]) + 200.0
+    parts, part_bounds = [batch], [bounds]
+    flips = [(-1, 1), (1, -1), (-1, -1)]
+    for d in range(n_decoys):
+        fx, fy = flips[d % 3]
+        side = math.ceil(math.sqrt(n_decoys + 1))  # tiles on a square grid, the real map at (0, 0)
+        offset = np.array([(d + 1) % side, (d + 1) // side]) * span
+        scale = torch.tensor([fx, fy], dtype=batch.points_xy.dtype)
+        centre = torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=batch.points_xy.dtype)
+        shift = torch.as_tensor(offset, dtype=batch.points_xy.dtype)
+        move = lambda p: (p - centre) * scale + centre + shift  # noqa: E731
+        parts.append(PrimitiveBatch(**{
+            **{f.name: getattr(batch, f.name) for f in fields(batch)},
+            "points_xy": move(batch.points_xy), "line_endpoints": move(batch.line_endpoints),
+        }))
+        b = bounds.copy()
+        bx = (np.stack([b[:, 0], b[:, 1]], 1) - (x0 + x1) / 2) * fx + (x0 + x1) / 2 + offset[0]
+        by = (np.stack([b[:, 2], b[:, 3]], 1) - (y0 + y1) / 2) * fy + (y0 + y1) / 2 + offset[1]
+        part_bounds.append(np.stack([bx.min(1), bx.max(1), by.min(1), by.max(1)], 1))
+    n_points = max(p.points_xy.shape[1] for p in parts)
+    n_lines = max(p.line_endpoints.shape[1] for p in parts)
+    merged = {}
+    for f in fields(batch):
+        n = n_points if f.name.startswith("point") else n_lines
+        merged[f.name] = torch.cat([_pad(getattr(p, f.name), n) for p in parts])
+    return PrimitiveBatch(**merged), np.concatenate(part_bounds)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sequence", type=Path)
+    ap.add_argument("-c", "--config", type=Path, required=True)
+    ap.add_argument("--map", type=Path, help="aerial map (default SEQUENCE/aerial.mtm)")
+    ap.add_argument("--submaps", type=Path, help="cache file of the ground submaps")
+    ap.add_argument("--max-frames", type=int)
+    ap.add_argument("--limit", type=int, help="only the first LIMIT submaps (cost on very large maps)")
+    ap.add_argument("--decoys", type=int, nargs="+", default=[0], help="mirrored decoy copies, one run each")
+    ap.add_argument("--set", action="append", default=[], help="config override, e.g. "
+                    "matching.place_recognition.coarse.classes=4")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", type=Path, help="append one JSON line per run")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    cfg = load_config(args.config, args.set)
+    ccfg = cfg.matching.place_recognition.coarse
+    amap = load_aerial_map(args.map or args.sequence / "aerial.mtm")
+    reader = SequenceReader(args.sequence)
+    submaps = load_submaps(args.sequence, cfg, args.submaps, args.max_frames)[: args.limit]
+    gt = reader.groundtruth
+    origin = np.asarray(getattr(amap, "local_origin_xy", (0.0, 0.0)), dtype=np.float64)
+    truth = []
+    for sm in submaps:
+        T_wb = interpolate_poses(gt.timestamps, gt.poses, np.array([sm.time]))[0]
+        T_wb[:2, 3] -= origin
+        T_true = true_T_world_odom(T_wb, sm.T_odom_base)
+        patch = containing_patch(amap.patches.centres_xy, amap.patches.bounds_xy, T_wb[:2, 3])
+        truth.append((patch, math.atan2(T_true[1, 0], T_true[0, 0])))
+    for n_decoys in args.decoys:
+        batch, bounds = with_decoys(amap.primitives, np.asarray(amap.patches.bounds_xy), n_decoys)
+        t0 = time.perf_counter()
+        cmap = build_coarse_map(batch, torch.as_tensor(bounds), ccfg)
+        build_s = time.perf_counter() - t0
+        ranks = {"single": [], "chain": []}
+        yaw_err, seconds = [], []
+        chain, previous_centre = None, None
+        for sm, (true_patch, true_yaw) in zip(submaps, truth):
+            t1 = time.perf_counter()
+            centre = torch.as_tensor(sm.T_odom_base[:2, 3])
+            single = submap_scores(cmap, sm.primitives, centre, ccfg)
+            step = centre - previous_centre if previous_centre is not None else centre * 0
+            chain = chain_scores(chain, single, step, cmap, ccfg)
+            priors = {"single": patch_priors(cmap, single, ccfg), "chain": patch_priors(cmap, chain, ccfg)}
+            seconds.append(time.perf_counter() - t1)
+            previous_centre = centre
+            if true_patch is None:
+                continue
+            for name, pr in priors.items():
+                better = (pr.score > pr.score[true_patch]).sum()
+                ranks[name].append(int(better) + 1)
+            err = float(priors["chain"].yaw[true_patch]) - true_yaw
+            yaw_err.append(abs(math.degrees((err + math.pi) % (2 * math.pi) - math.pi)))
+        row = {
+            "patches": cmap.n_patches, "raster": list(cmap.shape), "build_s": round(build_s, 2),
+            "s_per_submap": round(float(np.median(seconds)), 3), "submaps": len(ranks["chain"]),
+            **{f"{name}_recall@{k}": round(float(np.mean(np.array(r) <= k)), 3)
+               for name, r in ranks.items() for k in (1, 5, 25)},
+            "chain_ranks": ranks["chain"], "single_ranks": ranks["single"],
+            "chain_yaw_err_deg_median": round(float(np.median(yaw_err)), 1),
+            "overrides": args.set, "threads": args.threads,
+        }
+        print(json.dumps(row), flush=True)
+        if args.json:
+            with args.json.open("a") as fh:
+                fh.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()
