@@ -188,6 +188,37 @@ def convert_kitti_command(
     typer.echo(f"wrote {out}: {counts['frames']} frames")
 
 
+@convert_app.command("rosbag")
+@_error_boundary
+def convert_rosbag_command(
+    bags: Annotated[list[Path], typer.Argument(help="One recording: a ROS 1 .bag, a ROS 2 bag folder (sqlite3 or "
+                                                    "MCAP) or the parts of a split bag.")],
+    ortho: Annotated[Path, typer.Option("--ortho", help="Orthophoto of the area: GeoTIFF, or PNG/JPEG with its .json "
+                                                        "georeference.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Sequence folder to write (must not exist).")],
+    rgb_topic: Annotated[str | None, typer.Option(help="Colour image topic (Image or CompressedImage; default: the "
+                                                       "only one, or the one named *color*).")] = None,
+    depth_topic: Annotated[str | None, typer.Option(help="Depth image topic registered to the colour camera (16UC1 mm "
+                                                         "or 32FC1 m; default: the one named *depth*).")] = None,
+    camera_info_topic: Annotated[str | None, typer.Option(help="CameraInfo of the colour camera.")] = None,
+    odometry_topic: Annotated[str | None, typer.Option(help="nav_msgs/Odometry topic: T_odom_base.")] = None,
+    max_dt: Annotated[float, typer.Option(help="Largest colour-depth time difference paired, seconds.")] = 0.02,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
+) -> None:
+    """A ROS 1 / ROS 2 bag -> a sequence folder (no ROS needed; the base frame is put at the camera)."""
+    from meridian_torch.io.converters.rosbag import convert_rosbag
+
+    update, close = _progress_bar("converting", "frame")
+    try:
+        counts = convert_rosbag(bags, ortho, out, rgb_topic=rgb_topic, depth_topic=depth_topic,
+                                camera_info_topic=camera_info_topic, odometry_topic=odometry_topic, max_dt_s=max_dt,
+                                overwrite=overwrite, progress=update)
+    finally:
+        close()
+    typer.echo(f"wrote {out}: {counts['frames']} frames; skipped {counts['unpaired']} colour images without depth "
+               f"within {max_dt} s and {counts['without_pose']} outside the odometry")
+
+
 @convert_app.command("tum-rgbd")
 @_error_boundary
 def convert_tum_rgbd_command(
