@@ -202,16 +202,20 @@ def convert_rosbag_command(
                                                          "or 32FC1 m; default: the one named *depth*).")] = None,
     camera_info_topic: Annotated[str | None, typer.Option(help="CameraInfo of the colour camera.")] = None,
     odometry_topic: Annotated[str | None, typer.Option(help="nav_msgs/Odometry topic: T_odom_base.")] = None,
+    camera_at_base: Annotated[bool, typer.Option(help="Without a /tf_static chain from the odometry frame to the "
+                                                      "camera: put the base at the camera (right for a level camera "
+                                                      "only).")] = False,
     max_dt: Annotated[float, typer.Option(help="Largest colour-depth time difference paired, seconds.")] = 0.02,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
 ) -> None:
-    """A ROS 1 / ROS 2 bag -> a sequence folder (no ROS needed; the base frame is put at the camera)."""
+    """A ROS 1 / ROS 2 bag -> a sequence folder (no ROS needed; camera extrinsics from /tf_static)."""
     from meridian_torch.io.converters.rosbag import convert_rosbag
 
     update, close = _progress_bar("converting", "frame")
     try:
         counts = convert_rosbag(bags, ortho, out, rgb_topic=rgb_topic, depth_topic=depth_topic,
-                                camera_info_topic=camera_info_topic, odometry_topic=odometry_topic, max_dt_s=max_dt,
+                                camera_info_topic=camera_info_topic, odometry_topic=odometry_topic,
+                                camera_at_base=camera_at_base, max_dt_s=max_dt,
                                 overwrite=overwrite, progress=update)
     finally:
         close()

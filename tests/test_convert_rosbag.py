@@ -37,9 +37,12 @@ def _header(t: float, frame: str):
         stamp=TS.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))), frame_id=frame)
 
 
+CAMERA_FRAME = "camera_color_optical_frame"
+
+
 def _image(t: float, array: np.ndarray, encoding: str):
     data = np.ascontiguousarray(array).view(np.uint8).reshape(-1)
-    return TS.types["sensor_msgs/msg/Image"](header=_header(t, "camera"), height=array.shape[0], width=array.shape[1],
+    return TS.types["sensor_msgs/msg/Image"](header=_header(t, CAMERA_FRAME), height=array.shape[0], width=array.shape[1],
                                               encoding=encoding, is_bigendian=0, step=data.size // array.shape[0],
                                               data=data)
 
@@ -57,6 +60,25 @@ def _odometry(t: float, T: np.ndarray):
                                                           covariance=np.zeros(36)))
 
 
+def _static_tf(t: float, T_base_camera: np.ndarray):
+    """/tf_static: base_link -> camera_link (the mount) -> camera_color_optical_frame (the rotation)."""
+    ty = TS.types
+    mount = np.eye(4)
+    mount[:3, 3] = T_base_camera[:3, 3]
+    optical = np.linalg.inv(mount) @ T_base_camera
+
+    def stamped(parent: str, child: str, T: np.ndarray):
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        transform = ty["geometry_msgs/msg/Transform"](
+            translation=ty["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            rotation=ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        return ty["geometry_msgs/msg/TransformStamped"](header=_header(t, parent), child_frame_id=child,
+                                                        transform=transform)
+
+    return ty["tf2_msgs/msg/TFMessage"](transforms=[stamped("base_link", "camera_link", mount),
+                                                    stamped("camera_link", CAMERA_FRAME, optical)])
+
+
 def _camera_info(t: float, reader: SequenceReader):
     c = reader.camera
     ty = TS.types
@@ -68,10 +90,12 @@ def _camera_info(t: float, reader: SequenceReader):
 
 
 def write_bag(path: Path, seq: Path, version: int, *, depth_encoding: str = "16UC1", depth_delay: float = 0.005,
-              extra_rgb_topic: bool = False) -> None:
-    """The tiny sequence as a bag: colour rgb8, depth, camera info and its odometry poses."""
+              extra_rgb_topic: bool = False, tf: bool = True) -> None:
+    """The tiny sequence as a bag: colour rgb8, depth, camera info, its odometry poses and /tf_static."""
     reader = SequenceReader(seq)
     messages = []
+    if tf:
+        messages.append(("/tf_static", T0, _static_tf(T0, reader.camera.T_base_camera)))
     for i in range(len(reader)):
         f = reader[i]
         t = T0 + f.timestamp
@@ -116,6 +140,7 @@ def test_a_bag_converts_back_to_the_same_frames_and_odometry(tiny: Path, tmp_pat
     original, converted = SequenceReader(tiny), SequenceReader(tmp_path / "out")
     assert counts == {"frames": len(original), "unpaired": 0, "without_pose": 0}
     np.testing.assert_allclose(converted.frame_times, original.frame_times + T0, atol=2e-6, rtol=0)
+    np.testing.assert_allclose(converted.camera.T_base_camera, original.camera.T_base_camera, atol=1e-9, rtol=0)
     for i in (0, len(original) // 2, len(original) - 1):
         a, b = original[i], converted[i]
         np.testing.assert_array_equal(b.rgb, a.rgb)
@@ -129,6 +154,17 @@ def test_cli_converts_a_bag(tiny: Path, tmp_path: Path) -> None:
                                       "--out", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     assert "skipped 0 colour images" in result.output
+
+
+def test_without_tf_static_the_camera_must_be_declared_at_the_base(tiny: Path, tmp_path: Path) -> None:
+    from meridian_torch.io.converters.sync import T_BASE_OPTICAL
+
+    write_bag(tmp_path / "rec.bag", tiny, 1, tf=False)
+    with pytest.raises(RosbagError, match=r"no static transform chain from the odometry's frame 'base_link' "
+                                          r"\(/odom\) to the camera frame 'camera_color_optical_frame'"):
+        convert_rosbag([tmp_path / "rec.bag"], tiny / "aerial", tmp_path / "out")
+    convert_rosbag([tmp_path / "rec.bag"], tiny / "aerial", tmp_path / "out", camera_at_base=True)
+    np.testing.assert_array_equal(SequenceReader(tmp_path / "out").camera.T_base_camera, T_BASE_OPTICAL)
 
 
 @pytest.mark.parametrize("case", ["missing topic", "ambiguous colour", "unsynchronised", "wrong depth encoding"])

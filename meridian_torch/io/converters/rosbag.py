@@ -10,8 +10,10 @@ the depth image nearest in time within `max_dt_s` (the depth must be registered 
 camera, as RealSense/ZED `aligned_depth_to_color` topics are); colour images without depth or
 outside the odometry's time span are skipped and counted.
 
-The base frame: `T_base_camera` (default: the base at the camera, x forward, z up). Two passes
-over the bag, the second holding only the frames waiting for their partner: memory stays bounded.
+T_base_camera: the static TF chain (/tf_static) from the odometry's child frame to the colour
+image's frame; a bag without that chain is refused unless `camera_at_base` puts the base at the
+camera (x forward, z up), which is right only for a level camera. Two passes over the bag, the
+second holding only the frames waiting for their partner: memory stays bounded.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
+TF = "tf2_msgs/msg/TFMessage"
 COLOUR_ENCODINGS = {"rgb8": cv2.COLOR_RGB2BGR, "bgr8": None, "rgba8": cv2.COLOR_RGBA2BGR, "bgra8": cv2.COLOR_BGRA2BGR,
                     "mono8": cv2.COLOR_GRAY2BGR}
 DEPTH_ENCODINGS = {"16UC1": 1000.0, "mono16": 1000.0, "32FC1": 1.0}  # units per metre
@@ -98,14 +101,35 @@ def _depth_m(msg, topic: str) -> np.ndarray:
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
 
 
-def _pose(msg) -> np.ndarray:
+def _matrix(p, q) -> np.ndarray:
+    """(4, 4) from a position/translation and a quaternion message."""
     from scipy.spatial.transform import Rotation
 
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
     T[:3, 3] = [p.x, p.y, p.z]
     return T
+
+
+def _pose(msg) -> np.ndarray:
+    return _matrix(msg.pose.pose.position, msg.pose.pose.orientation)
+
+
+def _chain(edges: dict[tuple[str, str], np.ndarray], source: str, target: str) -> np.ndarray | None:
+    """T_source_target through the static transforms (T_parent_child per edge, walked both ways)."""
+    links: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for (parent, child), T in edges.items():
+        links.setdefault(parent, []).append((child, T))
+        links.setdefault(child, []).append((parent, np.linalg.inv(T)))
+    found = {source: np.eye(4)}
+    queue = [source]
+    while queue:
+        frame = queue.pop(0)
+        for other, T in links.get(frame, []):
+            if other not in found:
+                found[other] = found[frame] @ T
+                queue.append(other)
+    return found.get(target)
 
 
 def convert_rosbag(
@@ -117,7 +141,7 @@ def convert_rosbag(
     depth_topic: str | None = None,
     camera_info_topic: str | None = None,
     odometry_topic: str | None = None,
-    T_base_camera: np.ndarray = T_BASE_OPTICAL,
+    camera_at_base: bool = False,
     max_dt_s: float = 0.02,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
@@ -151,15 +175,26 @@ def convert_rosbag(
         # Pass 1: stamps, odometry and the camera model (nothing large is kept).
         stamps: dict[str, list[float]] = {rgb_t: [], depth_t: []}
         odom_times, odom_poses, info = [], [], None
-        for conn, _, raw in reader.messages(connections=[by_topic[t] for t in (rgb_t, depth_t, info_t, odom_t)]):
+        frames = {"base": None, "camera": None}
+        static: dict[tuple[str, str], np.ndarray] = {}
+        tf_static = [c for c in conns if c.topic == "/tf_static" and c.msgtype == TF]
+        wanted = [by_topic[t] for t in (rgb_t, depth_t, info_t, odom_t)] + tf_static
+        for conn, _, raw in reader.messages(connections=wanted):
             msg = reader.deserialize(raw, conn.msgtype)
-            if conn.topic == odom_t:
+            if conn.msgtype == TF:
+                for tf in msg.transforms:
+                    static[(tf.header.frame_id.lstrip("/"), tf.child_frame_id.lstrip("/"))] = _matrix(
+                        tf.transform.translation, tf.transform.rotation)
+            elif conn.topic == odom_t:
                 odom_times.append(_stamp(msg))
                 odom_poses.append(_pose(msg))
+                frames["base"] = frames["base"] or msg.child_frame_id.lstrip("/")
             elif conn.topic == info_t:
                 info = info or msg
             else:
                 stamps[conn.topic].append(_stamp(msg))
+                if conn.topic == rgb_t:
+                    frames["camera"] = frames["camera"] or msg.header.frame_id.lstrip("/")
         if info is None:
             raise RosbagError(f"{info_t}: no CameraInfo message")
         if len(odom_times) < 2:
@@ -177,9 +212,19 @@ def convert_rosbag(
         if len(use) == 0:
             raise RosbagError(f"{rgb_t}: no colour image has a depth image on {depth_t} within {max_dt_s} s "
                               f"and odometry on {odom_t}")
+        T_base_camera = _chain(static, frames["base"] or "", frames["camera"] or "")
+        at_base = T_base_camera is None
+        if at_base:
+            if not camera_at_base:
+                raise RosbagError(
+                    f"no static transform chain from the odometry's frame {frames['base']!r} ({odom_t}) to the camera "
+                    f"frame {frames['camera']!r} ({rgb_t}) in /tf_static; record it, or pass --camera-at-base for a "
+                    "level camera at the base"
+                )
+            T_base_camera = T_BASE_OPTICAL
         K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
         camera = CameraModel(int(info.width), int(info.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], DEPTH_SCALE,
-                             np.asarray(T_base_camera, dtype=np.float64))
+                             T_base_camera)
         maps = undistort_maps(K, info.d, camera.width, camera.height) if info.distortion_model in ("plumb_bob",
                                                                                                    "rational_polynomial") else None
 
@@ -215,5 +260,6 @@ def convert_rosbag(
             writer.set_odometry(odometry)
             writer.set_orthophoto(aerial)
             writer.set_meta({"source": f"ROS bag {', '.join(b.name for b in bags)}",
-                             "topics": {"rgb": rgb_t, "depth": depth_t, "camera_info": info_t, "odometry": odom_t}})
+                             "topics": {"rgb": rgb_t, "depth": depth_t, "camera_info": info_t, "odometry": odom_t},
+                             "camera_at_base": at_base})
     return {"frames": written, "unpaired": int((pair < 0).sum()), "without_pose": int(((pair >= 0) & ~covered).sum())}
