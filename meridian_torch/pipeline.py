@@ -58,6 +58,7 @@ def localize_sequence(
     `on_submap(submap, event)` after each submap was localized, `on_stage(name)` when the final
     offline pass starts.
     """
+    reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
     started = time.perf_counter()
     times = reader.frame_times
     mapper = GroundMapper.from_config(cfg, reader.camera, runtime)

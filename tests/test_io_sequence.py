@@ -9,6 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meridian_torch.errors import SequenceFormatError
 from meridian_torch.geometry.trajectory import Trajectory
@@ -303,3 +305,53 @@ def test_atomic_files_get_the_mode_of_a_plain_open(tmp_path: Path) -> None:
     atomic = tmp_path / "atomic.txt"
     write_text_atomic(atomic, "x")
     assert atomic.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
+
+
+def _gaps_loop(odom_t: np.ndarray, query: np.ndarray, max_gap: float) -> list[tuple[float, float]]:
+    gaps = set()
+    for q in query:
+        for a, b in zip(odom_t[:-1], odom_t[1:]):
+            if a < q < b and b - a > max_gap:
+                gaps.add((a, b))
+    return sorted(gaps)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 200), min_size=1, max_size=25, unique=True),
+       st.lists(st.integers(-10, 210), max_size=25), st.integers(1, 40))
+def test_gaps_bridged_equals_a_slow_loop(odom: list[int], query: list[int], max_gap: int) -> None:
+    odom_t = np.sort(np.array(odom, dtype=np.float64)) / 4.0
+    traj = Trajectory(odom_t, np.tile(np.eye(4), (len(odom_t), 1, 1)))
+    query_t = np.array(query, dtype=np.float64) / 4.0 + 0.125 * (np.arange(len(query)) % 2)
+    got = [tuple(g) for g in traj.gaps_bridged(query_t, max_gap / 4.0)]
+    assert got == _gaps_loop(odom_t, query_t, max_gap / 4.0)
+
+
+def test_frames_inside_an_odometry_gap_are_refused_before_the_run(tmp_path: Path) -> None:
+    """2 Hz odometry under frames at 10.0-10.3 s: fine at a 1 s limit, refused at 0.3 s (three frames lie
+    strictly between the poses at 10.0 and 10.5 s), by the reader and by check."""
+    write_sequence(tmp_path / "seq")
+    reader = SequenceReader(tmp_path / "seq")
+    reader.require_odometry_without_gaps(1.0)
+    with pytest.raises(SequenceFormatError, match=r"odometry\.tum: no pose between 10\.0+ and 10\.50* s .* "
+                                                  r"ground_map\.max_odometry_gap_s = 0\.3 s\) but 3 frame\(s\)"):
+        reader.require_odometry_without_gaps(0.3)
+    assert check_sequence(tmp_path / "seq") == []
+    problems = check_sequence(tmp_path / "seq", max_odometry_gap_s=0.3)
+    assert len(problems) == 1 and "odometry.tum: no pose between" in problems[0]
+
+
+def test_localize_refuses_an_odometry_gap_before_mapping(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from meridian_torch.config import MeridianConfig
+    from meridian_torch.mapping import ground_map
+    from meridian_torch.pipeline import localize_sequence
+    from meridian_torch.runtime import resolve_runtime
+
+    write_sequence(tmp_path / "seq")
+    cfg = MeridianConfig()
+    cfg = cfg.model_copy(update={"ground_map": cfg.ground_map.model_copy(update={"max_odometry_gap_s": 0.3})})
+    monkeypatch.setattr(ground_map.GroundMapper, "from_config", lambda *a, **k: pytest.fail("mapping started"))
+    with pytest.raises(SequenceFormatError, match="no pose between"):
+        localize_sequence(SequenceReader(tmp_path / "seq"), None, cfg, resolve_runtime(cfg.runtime))
+    with pytest.raises(SequenceFormatError, match="no pose between"):
+        ground_map.map_ground(SequenceReader(tmp_path / "seq"), cfg, resolve_runtime(cfg.runtime))

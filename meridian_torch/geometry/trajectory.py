@@ -48,6 +48,16 @@ class Trajectory:
         query = np.asarray(query, dtype=np.float64)
         return len(self) > 0 and query.min() >= self.timestamps[0] and query.max() <= self.timestamps[-1]
 
+    def gaps_bridged(self, query: np.ndarray, max_gap_s: float) -> np.ndarray:
+        """(G, 2) start and end times of the pose intervals longer than `max_gap_s` that hold a
+        query time strictly inside: where `interpolate` would guess across missing poses."""
+        query = np.asarray(query, dtype=np.float64)
+        k = np.searchsorted(self.timestamps, query, side="right")
+        inside = (k > 0) & (k < len(self)) & (query > self.timestamps[np.clip(k - 1, 0, len(self) - 1)])
+        k = np.unique(k[inside])
+        long = self.timestamps[k] - self.timestamps[k - 1] > max_gap_s
+        return np.stack([self.timestamps[k[long] - 1], self.timestamps[k[long]]], axis=1)
+
     def interpolate(self, query: np.ndarray) -> np.ndarray:
         """Poses (M, 4, 4) at the query times by SE(3) geodesic interpolation."""
         return interpolate_poses(self.timestamps, self.poses, np.asarray(query, dtype=np.float64))

@@ -235,6 +235,19 @@ def _check_covers(odometry: Trajectory, times: np.ndarray, odom_path: Path, prob
         )
 
 
+def odometry_gap_problems(odometry: Trajectory, times: np.ndarray, odom_path: Path, max_gap_s: float) -> list[str]:
+    """One problem per gap longer than `max_gap_s` between odometry poses with frames inside it."""
+    problems = []
+    for t0, t1 in odometry.gaps_bridged(times, max_gap_s):
+        n = int(((times > t0) & (times < t1)).sum())
+        problems.append(
+            f"{odom_path}: no pose between {t0:.9f} and {t1:.9f} s ({t1 - t0:.3f} s, longer than "
+            f"ground_map.max_odometry_gap_s = {max_gap_s} s) but {n} frame(s) fall inside; their poses would be "
+            "guessed: split the sequence there, fill the odometry, or raise the limit"
+        )
+    return problems
+
+
 def _parse_meta(path: Path, problems: list[str]) -> dict[str, Any]:
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
@@ -383,6 +396,15 @@ class SequenceReader:
         """T_odom_base as recorded in ground/odometry.tum."""
         return self._odometry
 
+    def require_odometry_without_gaps(self, max_gap_s: float) -> None:
+        """Raise SequenceFormatError if any frame's pose would be interpolated across a gap
+        longer than `max_gap_s` between odometry poses (checked before a run starts)."""
+        problems = odometry_gap_problems(self._odometry, self._table.times, self._root / "ground" / "odometry.tum",
+                                         max_gap_s)
+        if problems:
+            more = f" (and {len(problems) - 1} more such gaps)" if len(problems) > 1 else ""
+            raise SequenceFormatError(problems[0] + more)
+
     @property
     def groundtruth(self) -> Trajectory | None:
         """T_world_base from groundtruth.tum, or None if the sequence has none."""
@@ -418,8 +440,11 @@ class SequenceReader:
 # ---------------------------------------------------------------------------------- checker
 
 
-def check_sequence(path: PathLike) -> list[str]:
+def check_sequence(path: PathLike, max_odometry_gap_s: float | None = None) -> list[str]:
     """Every problem of a sequence folder, each naming its file; an empty list means valid.
+
+    `max_odometry_gap_s` (default: the config default) also reports frames inside longer gaps
+    between odometry poses.
 
     Unlike SequenceReader this also checks every listed image (existence, format, bit depth,
     size vs camera.json, from the headers only) and the orthophoto.
@@ -444,6 +469,11 @@ def check_sequence(path: PathLike) -> list[str]:
     problems += odom_problems
     if odometry is not None and table is not None and len(table.times):
         _check_covers(odometry, table.times, ground / "odometry.tum", problems)
+        if max_odometry_gap_s is None:
+            from meridian_torch.config import GroundMapConfig
+
+            max_odometry_gap_s = GroundMapConfig().max_odometry_gap_s
+        problems += odometry_gap_problems(odometry, table.times, ground / "odometry.tum", max_odometry_gap_s)
     if (root / "groundtruth.tum").exists():
         problems += parse_tum(root / "groundtruth.tum")[1]
     if (root / "meta.json").exists():

@@ -250,4 +250,5 @@ def map_ground(
     progress: Callable[[int, int], None] | None = None,
 ) -> list[GroundSubmap]:
     """All submaps of a sequence (frames segmented in batches of `cfg.ground_map.batch_size`)."""
+    reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
     return GroundMapper.from_config(cfg, reader.camera, runtime).map_sequence(reader, progress)
