@@ -413,7 +413,8 @@ def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path) -
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.seconds.items())
     typer.echo(f"{len(run.submaps)} submaps; {stages}; real-time factor {run.real_time_factor:.2f}; "
                f"peak memory {run.peak_memory_mib:.0f} MiB")
-    typer.echo(f"localized: {'yes' if run.result.localized else 'no'}; report: {report}")
+    why = f" ({run.result.rejected_because})" if run.result.rejected_because else ""
+    typer.echo(f"localized: {'yes' if run.result.localized else 'no'}{why}; report: {report}")
     return metrics
 
 

@@ -273,6 +273,11 @@ class BackendConfig(StrictModel):
         default=True, description="finalize: re-match every submap with the rotation prior near the trajectory (pass 2)"
     )
     covariance: bool = Field(default=True, description="compute the per-pose marginal covariance of the final graph")
+    sanity_max_off_map_fraction: float = Field(
+        default=0.1, ge=0, le=1, description="sanity gate: a final trajectory with more of its frames outside the "
+        "aerial map (grown by sanity_off_map_margin_m) is reported as not localized"
+    )
+    sanity_off_map_margin_m: float = Field(default=50.0, ge=0, description="sanity gate: margin around the map")
 
 
 class EvaluationConfig(StrictModel):

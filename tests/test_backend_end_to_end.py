@@ -162,3 +162,31 @@ def test_localizes_with_the_real_matcher() -> None:
 @pytest.mark.slow
 def test_localizes_with_clipper_matching_on_a_full_loop() -> None:
     _check(*_run(n_frames=300, spacing_m=20.0, solver="clipper"))
+
+
+def test_a_trajectory_off_the_map_is_reported_as_not_localized() -> None:
+    """The same solution, judged against a map moved 10 km away: the sanity gate refuses it."""
+    import dataclasses
+
+    from meridian_torch.backend.sanity import off_map_fraction
+
+    aerial, gt, odometry, submaps = make_world(n_frames=140, spacing_m=16.0)
+    loc = Localizer(aerial, _config("particles"), odometry, gt.timestamps, seed=0)
+    for s in submaps:
+        loc.add_submap(s)
+    moved = dataclasses.replace(aerial.patches, bounds_xy=aerial.patches.bounds_xy + 10_000.0)
+    loc.aerial_map = dataclasses.replace(aerial, patches=moved)
+    result = loc.finalize()
+    assert not result.localized and np.isnan(result.T_world_base).all() and len(result.inliers) == 0
+    assert "100 % of the final trajectory lies more than 50 m outside the aerial map" in result.rejected_because
+    # On the real map the same run is localized: the gate refused the place, not the run.
+    assert off_map_fraction(gt.poses[:, :2, 3], aerial.patches.bounds_xy, 50.0) == 0.0
+
+
+def test_off_map_fraction_counts_positions_outside_every_grown_patch() -> None:
+    from meridian_torch.backend.sanity import off_map_fraction
+
+    bounds = np.array([[0.0, 60.0, 0.0, 60.0], [30.0, 90.0, 0.0, 60.0]])
+    xy = np.array([[10.0, 10.0], [89.0, 59.0], [95.0, 30.0], [-4.0, 30.0], [200.0, 0.0]])
+    assert off_map_fraction(xy, bounds, 0.0) == pytest.approx(3 / 5)
+    assert off_map_fraction(xy, bounds, 5.0) == pytest.approx(1 / 5)

@@ -40,6 +40,7 @@ import torch
 from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses, se2_from_se3
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
 from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph
+from meridian_torch.backend.sanity import sanity_problems
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
@@ -98,6 +99,7 @@ class LocalizationResult:
     final_hypotheses: LoopClosureCandidates  # every submap re-matched in the final pass (empty without it)
     events: list[LocalizerEvent]
     timings: dict[str, float]  # seconds per stage: matching, consistency, pose_graph
+    rejected_because: str | None = None  # a solution passed the fix gate but failed the sanity gate (why)
 
     @property
     def final_trajectory(self) -> Trajectory | None:
@@ -471,7 +473,11 @@ class Localizer:
                 if self._gate(sel2.count, n_sub):
                     inliers2 = fresh.select(sel2.inliers)
                     best = (self._optimize(inliers2, n), inliers2)
-        localized = best is not None
+        rejected: list[str] = []
+        if best is not None:
+            rejected = sanity_problems(lift_se2(best[0].T_world_base, self.T_odom_base), self.aerial_map.patches.bounds_xy,
+                                       b.sanity_off_map_margin_m, b.sanity_max_off_map_fraction)
+        localized = best is not None and not rejected
         if localized:
             inliers = best[1]
             sol = self._optimize(inliers, n, covariance=b.covariance) if b.covariance else best[0]
@@ -496,6 +502,7 @@ class Localizer:
             final_hypotheses=fresh.translated(origin),
             events=list(self.events),
             timings=dict(self._timer.seconds),
+            rejected_because="; ".join(rejected) or None,
         )
 
 

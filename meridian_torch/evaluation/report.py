@@ -150,8 +150,10 @@ def write_report(
             f"{s['n_submaps']} submaps, {s['n_frames']} frames)"
         ),
         f"- global fix committed at submap {_fmt(s['fix_submap_index'])}, time {_fmt(s['fix_time'])} s",
-        "",
     ]
+    if s.get("rejected_because"):
+        lines.append(f"- **refused by the sanity gate**: {s['rejected_because']}")
+    lines += [""]
     if metrics is not None:
         lines += ["| metric | final | incremental |", "|---|---|---|"]
         for key in ("ate_rmse_m", "ate_mean_m", "ate_max_m", "heading_rmse_deg", "heading_max_deg", "n"):

@@ -233,6 +233,7 @@ def write_outputs(
     )
     summary = {
         "localized": result.localized,
+        "rejected_because": result.rejected_because,
         "n_frames": len(result.frame_times),
         "first_frame_time": float(result.frame_times[0]),
         "last_frame_time": float(result.frame_times[-1]),
