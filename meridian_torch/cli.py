@@ -97,11 +97,14 @@ def config_show(config: ConfigOption = None, set_: SetOption = None) -> None:
 @_error_boundary
 def check(
     sequence: Annotated[Path, typer.Argument(help="Sequence folder (see FORMAT.md in the README).")],
+    quick: Annotated[bool, typer.Option("--quick", help="Read image headers only (default: decode every image).")]
+    = False,
 ) -> None:
-    """Validate a sequence folder against the format and report every problem found."""
+    """Validate a sequence folder against the format and report every problem found (images, odometry
+    coverage and gaps, orthophoto and georeference)."""
     from meridian_torch.io.sequence import check_sequence
 
-    problems = check_sequence(sequence)
+    problems = check_sequence(sequence, quick=quick)
     if problems:
         for problem in problems:
             typer.echo(f"- {problem}")

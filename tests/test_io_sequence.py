@@ -355,3 +355,20 @@ def test_localize_refuses_an_odometry_gap_before_mapping(tmp_path: Path, monkeyp
         localize_sequence(SequenceReader(tmp_path / "seq"), None, cfg, resolve_runtime(cfg.runtime))
     with pytest.raises(SequenceFormatError, match="no pose between"):
         ground_map.map_ground(SequenceReader(tmp_path / "seq"), cfg, resolve_runtime(cfg.runtime))
+
+
+def test_check_decodes_every_image_unless_quick(seq: Path) -> None:
+    """A truncated frame has a valid header: only decoding finds it, before a run reaches it."""
+    from typer.testing import CliRunner
+
+    from meridian_torch.cli import app
+
+    png = seq / "ground" / "rgb" / "000002.png"
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])
+    problems = check_sequence(seq)
+    assert len(problems) == 1 and problems[0].startswith(f"{png}: image data cannot be decoded")
+    assert check_sequence(seq, quick=True) == []
+    result = CliRunner().invoke(app, ["check", str(seq)])
+    assert result.exit_code == 1 and "000002.png: image data cannot be decoded" in result.output
+    assert CliRunner().invoke(app, ["check", str(seq), "--quick"]).exit_code == 0

@@ -274,6 +274,14 @@ def _open_image(path: Path, line: int, problems: list[str]) -> Image.Image | Non
     return None
 
 
+def _decode(img: Image.Image, path: Path, problems: list[str]) -> None:
+    """Decode the whole image: truncated or corrupt data shows only here, not in the header."""
+    try:
+        img.load()
+    except (OSError, SyntaxError, ValueError) as e:
+        problems.append(f"{path}: image data cannot be decoded ({e})")
+
+
 def _check_size(img: Image.Image, path: Path, camera: CameraModel | None, problems: list[str]) -> None:
     if camera is not None and img.size != (camera.width, camera.height):
         problems.append(
@@ -440,11 +448,12 @@ class SequenceReader:
 # ---------------------------------------------------------------------------------- checker
 
 
-def check_sequence(path: PathLike, max_odometry_gap_s: float | None = None) -> list[str]:
+def check_sequence(path: PathLike, max_odometry_gap_s: float | None = None, *, quick: bool = False) -> list[str]:
     """Every problem of a sequence folder, each naming its file; an empty list means valid.
 
     `max_odometry_gap_s` (default: the config default) also reports frames inside longer gaps
-    between odometry poses.
+    between odometry poses. Every image is decoded (a truncated file is found here, not at its
+    frame in the middle of a run); `quick` reads the headers only.
 
     Unlike SequenceReader this also checks every listed image (existence, format, bit depth,
     size vs camera.json, from the headers only) and the orthophoto.
@@ -465,6 +474,8 @@ def check_sequence(path: PathLike, max_odometry_gap_s: float | None = None) -> l
                 if img is not None:
                     with img:
                         check(img, img_path, camera, problems)
+                        if not quick:
+                            _decode(img, img_path, problems)
     odometry, odom_problems = parse_tum(ground / "odometry.tum")
     problems += odom_problems
     if odometry is not None and table is not None and len(table.times):
