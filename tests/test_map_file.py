@@ -115,3 +115,22 @@ def test_map_config_ignores_options_of_unused_back_ends() -> None:
     assert map_config_dict(cfg.aerial_map, changed_used, cfg.primitives) != base
     switched = cfg.perception.model_copy(update={"aerial_segmenter": seg.model_copy(update={"backend": "sam"})})
     assert map_config_dict(cfg.aerial_map, switched, cfg.primitives) != base
+
+
+@pytest.mark.parametrize("content", ["random bytes", "a pickled numpy array", "a zip with a pickled array"])
+def test_unreadable_files_say_what_they_are_not(tmp_path: Path, content: str) -> None:
+    """One line naming the file, never numpy's advice to load pickles unsafely."""
+    path = tmp_path / "m.mtm"
+    if content == "random bytes":
+        path.write_bytes(np.random.default_rng(0).bytes(4096))
+    elif content == "a pickled numpy array":
+        with open(path, "wb") as fh:
+            np.save(fh, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    else:
+        with open(path, "wb") as fh:
+            np.savez(fh, header=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(MapFileError) as info:
+        load_aerial_map(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: not a") and "rebuild the map" in message
+    assert "pickle" not in message and "unsafe" not in message

@@ -56,11 +56,14 @@ def read_container(
     path = Path(path)
     if not path.is_file():
         raise error(f"{path}: {what} not found")
+    if not zipfile.is_zipfile(path):  # numpy would guess a pickle and advise loading it unsafely
+        raise error(f"{path}: not a meridian-torch {what} (not a zip archive); {redo}")
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
-        raise error(f"{path}: not a readable {what} ({exc})") from None
+        detail = "it holds Python objects" if "pickle" in str(exc) else str(exc)
+        raise error(f"{path}: not a readable {what} ({detail}); {redo}") from None
     try:
         header = json.loads(arrays.pop("header.json").tobytes().decode())
     except (KeyError, UnicodeDecodeError, json.JSONDecodeError):
