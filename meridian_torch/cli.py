@@ -161,7 +161,7 @@ def _build_map(cfg: MeridianConfig, ortho_path: Path, out: Path) -> Any:
     update, close = _progress_bar("building aerial map", "patch")
     try:
         return build_map_file(ortho_path, out, cfg.aerial_map, cfg.perception, cfg.primitives,
-                              device=runtime.device, progress=update)
+                              device=runtime.device, progress=update, on_message=typer.echo)
     finally:
         close()
 

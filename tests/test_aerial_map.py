@@ -95,6 +95,25 @@ def test_interrupted_build_resumes(ortho: Orthophoto, reference_map, tmp_path: P
     _assert_same(resumed, reference_map)
 
 
+def test_a_damaged_part_file_is_built_again(ortho: Orthophoto, reference_map, tmp_path: Path) -> None:
+    work = tmp_path / "parts"
+
+    def interrupt(done: int, total: int) -> None:
+        if done >= 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_aerial_map(ortho, _mapper(1), work_dir=work, progress=interrupt)
+    parts = sorted(work.glob("patch_*.npz"))
+    parts[1].write_bytes(parts[1].read_bytes()[:100])  # truncated, as by a full disk
+    messages, progress = [], []
+    resumed = build_aerial_map(ortho, _mapper(1), work_dir=work, progress=lambda d, t: progress.append(d),
+                               on_message=messages.append)
+    assert messages == [f"{parts[1]}: damaged part file, building that patch again"]
+    assert progress[0] == 2, "the two intact patches were reused"
+    _assert_same(resumed, reference_map)
+
+
 def test_build_and_show_map_cli(ortho: Orthophoto, reference_map, tmp_path: Path) -> None:
     write_orthophoto(tmp_path / "aerial", ortho)
     out = tmp_path / "map.mtm"

@@ -20,6 +20,7 @@ import hashlib
 import json
 import multiprocessing
 import shutil
+import zipfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -167,11 +168,15 @@ def _save_patch(path: Path, prims: PrimitiveSet, global_desc: torch.Tensor) -> N
         np.savez(fh, global_desc=global_desc.numpy(), **{k: v.numpy() for k, v in vars(prims).items()})
 
 
-def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor]:
-    with np.load(path) as npz:
-        arrays = {k: torch.from_numpy(npz[k]) for k in npz.files}
-    global_desc = arrays.pop("global_desc")
-    return PrimitiveSet(**arrays), global_desc
+def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor] | None:
+    """A finished patch, or None when its part file is damaged (it is then built again)."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: torch.from_numpy(npz[k]) for k in npz.files}
+        global_desc = arrays.pop("global_desc")
+        return PrimitiveSet(**arrays), global_desc
+    except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile):
+        return None
 
 
 _worker_state: tuple[Orthophoto, PatchGrid, AerialMapper] | None = None
@@ -218,8 +223,10 @@ def build_aerial_map(
     work_dir: Path | None = None,
     source: dict[str, str] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
-    """Build the aerial map of `ortho`. With `work_dir`, finished patches are kept there and reused."""
+    """Build the aerial map of `ortho`. With `work_dir`, finished patches are kept there and reused
+    (damaged part files are built again, reported through `on_message`)."""
     grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, _corner_in_map_frame(ortho),
                       mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
     results: dict[int, tuple[PrimitiveSet, torch.Tensor]] = {}
@@ -230,8 +237,14 @@ def build_aerial_map(
             shutil.rmtree(work_dir)  # another orthophoto or config: nothing to resume
         work_dir.mkdir(parents=True, exist_ok=True)
         write_text_atomic(key_file, key)
-        for path in work_dir.glob("patch_*.npz"):
-            results[int(path.stem.split("_")[1])] = _load_patch(path)
+        for path in sorted(work_dir.glob("patch_*.npz")):
+            loaded = _load_patch(path)
+            if loaded is None:
+                path.unlink()
+                if on_message is not None:
+                    on_message(f"{path}: damaged part file, building that patch again")
+            else:
+                results[int(path.stem.split("_")[1])] = loaded
     todo = np.array([i for i in range(len(grid)) if i not in results], dtype=np.int64)
     if progress is not None:
         progress(len(results), len(grid))
@@ -273,13 +286,14 @@ def build_map_file(
     *,
     device: torch.device | str = "cpu",
     progress: Callable[[int, int], None] | None = None,
+    on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
     """Orthophoto file or folder -> aerial map saved at `out`, resumable through `out`.parts/."""
     ortho = read_orthophoto(ortho_path)
     mapper = AerialMapper.from_config(aerial, perception, primitives, device=device)
     work_dir = out.with_name(out.name + ".parts")
     aerial_map = build_aerial_map(
-        ortho, mapper, work_dir=work_dir, progress=progress,
+        ortho, mapper, work_dir=work_dir, progress=progress, on_message=on_message,
         source={"orthophoto": str(find_orthophoto(ortho_path).resolve())},
     )
     save_aerial_map(aerial_map, out)
