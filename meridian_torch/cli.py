@@ -19,7 +19,7 @@ import typer
 
 from meridian_torch import __version__
 from meridian_torch.config import CONFIG_DIR, MeridianConfig, config_key, dump_config, load_config
-from meridian_torch.errors import MeridianError
+from meridian_torch.errors import MeridianError, OutputExistsError
 
 __all__ = ["app", "main"]
 
@@ -373,8 +373,10 @@ def _load_or_build_map(cfg: MeridianConfig, map_path: Path, ortho_path: Path) ->
     return _build_map(cfg, ortho_path, map_path)
 
 
-def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path) -> dict[str, Any] | None:
-    """Run the online pipeline with live progress, write the outputs, evaluate when ground truth exists."""
+def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path,
+              shown: Path | None = None) -> dict[str, Any] | None:
+    """Run the online pipeline with live progress, write the outputs into `out`, evaluate when ground
+    truth exists; messages name `shown` (where the outputs will be) instead of `out`."""
     from tqdm import tqdm
 
     from meridian_torch.evaluation.report import write_report
@@ -417,7 +419,7 @@ def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path) -
     typer.echo(f"{len(run.submaps)} submaps; {stages}; real-time factor {run.real_time_factor:.2f}; "
                f"peak memory {run.peak_memory_mib:.0f} MiB")
     why = f" ({run.result.rejected_because})" if run.result.rejected_because else ""
-    typer.echo(f"localized: {'yes' if run.result.localized else 'no'}{why}; report: {report}")
+    typer.echo(f"localized: {'yes' if run.result.localized else 'no'}{why}; report: {(shown or out) / report.name}")
     return metrics
 
 
@@ -437,22 +439,36 @@ def localize(
     sequence: Annotated[Path, typer.Argument(help="Sequence folder (see FORMAT.md in the README).")],
     map_file: Annotated[Path, typer.Option("--map", "-m", help="Aerial map (.mtm); built from the sequence's "
                                                                 "orthophoto first if it does not exist.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (trajectories, metrics, plots, report).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (trajectories, metrics, plots, report); "
+                                                          "a folder that holds files needs --overwrite.")],
     config: ConfigOption = None,
     set_: SetOption = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an output folder that holds files (all of them, when "
+                                                 "the run is complete).")] = False,
 ) -> None:
     """Localize a sequence in an aerial map: online (incremental) and offline (final) trajectories.
 
     Writes trajectory.tum, trajectory_incremental.tum, covariances, loop-closure inliers, a report
     with plots, geo outputs when the orthophoto has a CRS, and metrics.json when groundtruth.tum
     exists. Progress shows every submap, its hypotheses, the inlier count and the global fix.
+    The outputs are written into a temporary folder beside OUT that replaces it only when the run
+    is complete: an interrupted or failed run leaves OUT as it was.
     """
+    from meridian_torch.io.atomic import atomic_directory
     from meridian_torch.io.run_info import write_run_info
 
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise OutputExistsError(f"{out}: already exists and holds files; pass --overwrite to replace it, or choose "
+                                "another output folder")
     cfg = _load(config, set_)
-    write_run_info(out, cfg, "localize")
-    aerial_map = _load_or_build_map(cfg, map_file, sequence)
-    metrics = _localize(cfg, sequence, aerial_map, out)
+    try:
+        with atomic_directory(out, overwrite=True) as tmp:
+            write_run_info(tmp, cfg, "localize")
+            aerial_map = _load_or_build_map(cfg, map_file, sequence)
+            metrics = _localize(cfg, sequence, aerial_map, tmp, shown=out)
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: nothing was written, {out} is as it was", err=True)
+        raise typer.Exit(130) from None
     if metrics is not None:
         _print_metrics(metrics)
     typer.echo(f"outputs in {out}")

@@ -32,3 +32,7 @@ class ModelWeightsError(MeridianError):
 
 class ExportError(MeridianError):
     """An ONNX export failed or its onnxruntime output differs from eager torch; nothing was written."""
+
+
+class OutputExistsError(MeridianError):
+    """An output location holds files the command would replace; nothing was written."""

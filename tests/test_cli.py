@@ -37,3 +37,37 @@ def test_check_reports_missing_folder(tmp_path: Path) -> None:
     result = runner.invoke(app, ["check", str(tmp_path / "nope")])
     assert result.exit_code == 1
     assert "nope" in result.output
+
+
+def test_localize_refuses_a_folder_with_files_and_leaves_it_untouched(tmp_path: Path) -> None:
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    result = CliRunner().invoke(app, ["localize", str(tmp_path / "no-sequence"), "--map", str(tmp_path / "m.mtm"),
+                                      "--out", str(out)])
+    assert result.exit_code == 1
+    assert f"{out}: already exists and holds files; pass --overwrite" in result.output
+    assert [p.name for p in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "mine"
+
+
+def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from meridian_torch import cli
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "trajectory.tum").write_text("# an earlier run\n")
+    args = ["localize", str(tmp_path / "seq"), "--map", str(tmp_path / "m.mtm"), "--out", str(out), "--overwrite"]
+    failed = CliRunner().invoke(app, args)  # the sequence does not exist: fails after the folder check
+    assert failed.exit_code == 1 and "seq" in failed.output
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_load_or_build_map", interrupt)
+    interrupted = CliRunner().invoke(app, args)
+    assert interrupted.exit_code == 130 and "interrupted: nothing was written" in interrupted.output
+    for result in (failed, interrupted):
+        assert sorted(p.name for p in out.iterdir()) == ["trajectory.tum"]
+        assert (out / "trajectory.tum").read_text() == "# an earlier run\n"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".results")], "no temporary folder left"
