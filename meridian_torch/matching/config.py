@@ -253,7 +253,7 @@ class PlaceRecognitionConfig(StrictModel):
     mode: Literal["auto", "global", "exhaustive", "near", "coarse"] = Field(
         default="auto",
         description="'global': top k_global patches by descriptor similarity (paper); 'exhaustive': every patch; "
-        "'auto': exhaustive on maps of at most exhaustive_max_patches patches, else global; 'near': the patches "
+        "'auto': exhaustive on maps of at most exhaustive_max_patches patches, else coarse; 'near': the patches "
         "overlapping most with a disk around a predicted position; 'coarse': top k_coarse patches of the coarse "
         "search (`coarse`). Default auto, not the paper's global: cross-view "
         "place recognition with the classical descriptors ranks the true patch at random (demo world: median rank "
