@@ -11,9 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from meridian_torch.io.converters.kitti import DEPTH_SCALE, KittiError, convert_kitti
+from meridian_torch.io.converters.kitti import DEPTH_SCALE, KittiError, convert_kitti, lidar_depth_image
 from meridian_torch.io.converters.sync import T_BASE_OPTICAL
-from meridian_torch.io.converters.kitti import lidar_depth_image
 from meridian_torch.io.ortho import Orthophoto, write_orthophoto
 from meridian_torch.io.sequence import SequenceReader, check_sequence
 

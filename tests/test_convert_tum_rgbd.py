@@ -14,12 +14,11 @@ from typer.testing import CliRunner
 
 from meridian_torch.cli import app
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.converters.sync import T_BASE_OPTICAL, associate
-from meridian_torch.io.converters.tum_rgbd import TUM_DEPTH_SCALE, TumRgbdError
-from meridian_torch.io.converters.tum_rgbd import convert_tum_rgbd
+from meridian_torch.io.converters.tum_rgbd import TUM_DEPTH_SCALE, TumRgbdError, convert_tum_rgbd
 from meridian_torch.io.poses import write_tum
 from meridian_torch.io.sequence import SequenceReader, check_sequence
-from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.sim.simulate import simulate_sequence
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "open3d_testdata_rgbd"
