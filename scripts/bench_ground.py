@@ -5,8 +5,9 @@ Runs `GroundMapper.map_sequence` over the sequence (default: the demo world, ren
 cache if missing) and reports wall time split into stages (frame loading, segmentation +
 description, observations, tracking, submaps, global descriptors), frames per second, the
 real-time factor (sequence duration / wall time) and the peak resident memory of the process.
-Timing is per stage with time.perf_counter around the mapper's calls; numbers depend on the
-machine's load, so say how loaded it was when quoting them.
+Stage times are the mapper's own `core.timing` stages (wall time; frames of a batch run in
+threads inside "segmentation" and "observations"); numbers depend on the machine's load, so say
+how loaded it was when quoting them.
 
 Example: python scripts/bench_ground.py --threads 2 demo-sequence -c configs/demo.yaml
 """
@@ -22,22 +23,10 @@ from pathlib import Path
 import torch
 
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.core.timing import record_stages
 from meridian_torch.io.sequence import SequenceReader
-from meridian_torch.mapping import ground_map, ground_observations
 from meridian_torch.mapping.ground_map import GroundMapper
-from meridian_torch.runtime import resolve_runtime
-from meridian_torch.runtime import peak_rss_mib
-
-
-def _timed(table: dict[str, float], name: str, fn):
-    def wrapper(*args, **kwargs):
-        t = time.perf_counter()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            table[name] += time.perf_counter() - t
-
-    return wrapper
+from meridian_torch.runtime import peak_rss_mib, resolve_runtime
 
 
 def main() -> None:
@@ -62,25 +51,20 @@ def main() -> None:
     reader = SequenceReader(seq)
     n = len(reader) if args.frames is None else min(args.frames, len(reader))
 
-    stages: dict[str, float] = defaultdict(float)
     mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
-    mapper.segmenter.segment = _timed(stages, "segmentation", mapper.segmenter.segment)
-    mapper.describer.describe = _timed(stages, "segment descriptors", mapper.describer.describe)
-    mapper.global_describer.describe = _timed(stages, "global descriptors", mapper.global_describer.describe)
-    ground_observations.frame_observations = _timed(stages, "observations (3D)", ground_observations.frame_observations)
-    mapper.tracker.update = _timed(stages, "tracking", mapper.tracker.update)
-    ground_map.submap_primitives = _timed(stages, "submaps", ground_map.submap_primitives)
-
+    stages: dict[str, float] = defaultdict(float)
     started = time.perf_counter()
     submaps = []
     load = 0.0
-    for s in range(0, n, cfg.ground_map.batch_size):
-        t = time.perf_counter()
-        frames = [reader[i] for i in range(s, min(s + cfg.ground_map.batch_size, n))]
-        load += time.perf_counter() - t
-        submaps += mapper.add_frames(frames)
-    submaps += mapper.finish()
+    with record_stages() as times:  # wall time per stage in this thread (frames run in threads inside)
+        for s in range(0, n, cfg.ground_map.batch_size):
+            t = time.perf_counter()
+            frames = [reader[i] for i in range(s, min(s + cfg.ground_map.batch_size, n))]
+            load += time.perf_counter() - t
+            submaps += mapper.add_frames(frames)
+        submaps += mapper.finish()
     wall = time.perf_counter() - started
+    stages.update(times.seconds)
     stages["frame loading"] = load
     duration = float(reader.frame_times[n - 1] - reader.frame_times[0]) + 1.0 / cfg.sim.trajectory.frame_rate_hz
     peak_mb = peak_rss_mib()
