@@ -25,7 +25,6 @@ from scipy.sparse.csgraph import connected_components
 from skimage.segmentation import felzenszwalb, slic
 
 from meridian_torch.core.parallel import thread_map
-
 from meridian_torch.perception.protocols import Segmentation
 
 __all__ = [
