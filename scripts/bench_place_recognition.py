@@ -7,8 +7,8 @@ the real map plus decoy copies of it, mirrored (a mirror image cannot be matched
 tiled beside it on a square grid (`--decoys 3` = x-, y- and xy-mirrored copies, four times the
 patches; more decoys repeat the three mirrors at other places).
 
-    PYTHONPATH=$PWD python scripts/bench_place_recognition.py /work/runs/coarse/kitti02 \\
-        -c configs/kitti02.yaml --submaps /work/runs/coarse/kitti02/submaps.pt --threads 1
+    python scripts/bench_place_recognition.py runs/kitti02 \\
+        -c configs/kitti02.yaml --submaps runs/kitti02/submaps.pt --threads 1
 
 Submaps are built with the config's ground mapping on the first run and cached (`--submaps`).
 """
@@ -50,18 +50,7 @@ def load_submaps(seq: Path, cfg, cache: Path | None, max_frames: int | None):
 
     reader = SequenceReader(seq)
 
-    class Prefix:  # the first max_frames frames of the sequence
-        def __init__(self, r, n):
-            self.r, self.n, self.camera = r, n, r.camera
-
-        def __len__(self):
-            return self.n
-
-        def __getitem__(self, i):
-            return self.r[i]
-
-    source = Prefix(reader, min(max_frames or len(reader), len(reader)))
-    submaps = map_ground(source, cfg, resolve_runtime(cfg.runtime))
+    submaps = map_ground(reader, cfg, resolve_runtime(cfg.runtime), n_frames=max_frames)
     if cache is not None:
         torch.save(submaps, cache)
     return submaps

@@ -157,21 +157,6 @@ def _patch(aerial_map, index: int, lines: bool):
     return stack_primitive_sets([patch])
 
 
-class _FramePrefix:
-    """The first `n` frames of a sequence reader (what `map_ground` reads: camera, len, [i])."""
-
-    def __init__(self, reader, n: int) -> None:
-        self.reader, self.n, self.camera = reader, min(n, len(reader)), reader.camera
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, index: int):
-        if not 0 <= index < self.n:
-            raise IndexError(index)
-        return self.reader[index]
-
-
 def line_agreement(ground_lines: np.ndarray, aerial_lines: np.ndarray, T: np.ndarray, tol_m: float,
                    tol_deg: float) -> np.ndarray:
     """(Ng, Na) bool: ground line (odom, (Ng, 2, 2)) mapped by T (3, 3) lies on aerial line
@@ -240,11 +225,10 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
     def progress(done: int, total: int) -> None:
         print(f"  ground mapping: {done}/{total} frames", flush=True)
 
-    frames = reader if max_frames is None else _FramePrefix(reader, max_frames)
     if cache is not None and cache.exists():
         submaps = torch.load(cache, weights_only=False)
     else:
-        submaps = map_ground(frames, cfg, runtime, progress)
+        submaps = map_ground(reader, cfg, runtime, progress, n_frames=max_frames)
         if cache is not None:
             torch.save(submaps, cache)
     seconds["ground mapping"] = time.perf_counter() - t0

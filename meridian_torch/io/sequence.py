@@ -404,11 +404,11 @@ class SequenceReader:
         """T_odom_base as recorded in ground/odometry.tum."""
         return self._odometry
 
-    def require_odometry_without_gaps(self, max_gap_s: float) -> None:
-        """Raise SequenceFormatError if any frame's pose would be interpolated across a gap
-        longer than `max_gap_s` between odometry poses (checked before a run starts)."""
-        problems = odometry_gap_problems(self._odometry, self._table.times, self._root / "ground" / "odometry.tum",
-                                         max_gap_s)
+    def require_odometry_without_gaps(self, max_gap_s: float, n_frames: int | None = None) -> None:
+        """Raise SequenceFormatError if the pose of any of the first `n_frames` frames (default all)
+        would be interpolated across a gap longer than `max_gap_s` between odometry poses."""
+        problems = odometry_gap_problems(self._odometry, self._table.times[:n_frames],
+                                         self._root / "ground" / "odometry.tum", max_gap_s)
         if problems:
             more = f" (and {len(problems) - 1} more such gaps)" if len(problems) > 1 else ""
             raise SequenceFormatError(problems[0] + more)

@@ -161,10 +161,12 @@ class GroundMapper:
         return [] if submap is None else [submap]
 
     def map_sequence(
-        self, reader: SequenceReader, progress: Callable[[int, int], None] | None = None
+        self, reader: SequenceReader, progress: Callable[[int, int], None] | None = None, n_frames: int | None = None
     ) -> list[GroundSubmap]:
-        """Every frame of `reader` in batches of `batch_size`, then `finish`: all submaps."""
-        n = len(reader)
+        """The first `n_frames` frames of `reader` (default all) in batches of `batch_size`, then
+        `finish`: all submaps. Frames inside an odometry gap are refused before any work."""
+        reader.require_odometry_without_gaps(self.cfg.max_odometry_gap_s, n_frames)
+        n = len(reader) if n_frames is None else min(n_frames, len(reader))
         batch = self.cfg.batch_size
         submaps: list[GroundSubmap] = []
         if progress is not None:
@@ -248,7 +250,9 @@ def map_ground(
     cfg: MeridianConfig,
     runtime: Runtime,
     progress: Callable[[int, int], None] | None = None,
+    n_frames: int | None = None,
 ) -> list[GroundSubmap]:
-    """All submaps of a sequence (frames segmented in batches of `cfg.ground_map.batch_size`)."""
-    reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
-    return GroundMapper.from_config(cfg, reader.camera, runtime).map_sequence(reader, progress)
+    """All submaps of the first `n_frames` frames of a sequence (default all; frames segmented in
+    batches of `cfg.ground_map.batch_size`)."""
+    reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s, n_frames)  # before the models load
+    return GroundMapper.from_config(cfg, reader.camera, runtime).map_sequence(reader, progress, n_frames)
