@@ -14,7 +14,7 @@ then the final offline pass) on one sequence folder and prints:
 
 Each measurement runs in a fresh child process, so that its peak memory is its own.
 `--baseline-src DIR` runs the same measurement on another source tree (e.g. a git worktree of an
-older commit: `git worktree add /tmp/base <commit>`) right after, and prints both side by side;
+older commit: `git worktree add ../base <commit>`) right after, and prints both side by side;
 the older tree may lack the sub-stage timings. `--passes N` replays the drive N times, forward
 and backward in turn (a physically continuous drive of N times the length: the robot retraces
 its path), to show that memory and frames/s do not depend on how long it drives.
@@ -24,7 +24,7 @@ its path), to show that memory and frames/s do not depend on how long it drives.
 Timings are noisy on shared machines: the load average before each run is printed with it.
 
 Example:
-    python scripts/bench_localize.py /work/runs/kitti09-7hz -c configs/kitti09.yaml --threads 2
+    python scripts/bench_localize.py runs/kitti09-7hz -c configs/kitti09.yaml --threads 2
 """
 
 from __future__ import annotations
@@ -103,6 +103,10 @@ class ReplayedSequence:
 
     def ortho(self):
         return self.reader.ortho()
+
+    def require_odometry_without_gaps(self, max_gap_s: float) -> None:
+        """The replay shows recorded poses only: the recording's gaps are its gaps."""
+        self.reader.require_odometry_without_gaps(max_gap_s)
 
 
 # ---------------------------------------------------------------------------------- one run
