@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from meridian_torch.errors import MeridianError
+from meridian_torch.geometry.se3 import quat_xyzw_to_matrix
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.converters.sync import T_BASE_OPTICAL, associate, undistort_maps
@@ -103,10 +104,8 @@ def _depth_m(msg, topic: str) -> np.ndarray:
 
 def _matrix(p, q) -> np.ndarray:
     """(4, 4) from a position/translation and a quaternion message."""
-    from scipy.spatial.transform import Rotation
-
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    T[:3, :3] = quat_xyzw_to_matrix([q.x, q.y, q.z, q.w])
     T[:3, 3] = [p.x, p.y, p.z]
     return T
 
