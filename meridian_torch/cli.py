@@ -8,6 +8,8 @@ from __future__ import annotations
 import functools
 import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 # Idle OpenMP threads sleep instead of spinning: on a shared 2-core machine spinning threads made
 # small torch ops 25-50x slower (measured); set before torch is first imported.
@@ -65,7 +67,9 @@ def _load(config: Path | None, overrides: list[str] | None) -> MeridianConfig:
     return load_config(config, overrides or [])
 
 
-def _progress_bar(desc: str, unit: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
+@contextmanager
+def _progress(desc: str, unit: str) -> Iterator[Callable[[int, int], None]]:
+    """A tqdm bar for the block; yields its `update(done, total)` callback and closes it on exit."""
     from tqdm import tqdm
 
     bar = tqdm(desc=desc, unit=unit, dynamic_ncols=True)
@@ -74,7 +78,15 @@ def _progress_bar(desc: str, unit: str) -> tuple[Callable[[int, int], None], Cal
         bar.total = total
         bar.update(done - bar.n)
 
-    return update, bar.close
+    try:
+        yield update
+    finally:
+        bar.close()
+
+
+def _converted(out: Path, counts: dict[str, int], max_dt: float, pose_source: str) -> None:
+    typer.echo(f"wrote {out}: {counts['frames']} frames; skipped {counts['unpaired']} colour images without depth "
+               f"within {max_dt} s and {counts['without_pose']} outside the {pose_source}")
 
 
 @app.callback(invoke_without_command=True)
@@ -119,11 +131,8 @@ def _simulate(cfg: MeridianConfig, out: Path, overwrite: bool) -> Any:
     from meridian_torch.sim.simulate import simulate_sequence
 
     runtime = resolve_runtime(cfg.runtime)
-    update, close = _progress_bar("rendering frames", "frame")
-    try:
+    with _progress("rendering frames", "frame") as update:
         summary = simulate_sequence(cfg.sim, out, device=runtime.device, overwrite=overwrite, progress=update)
-    finally:
-        close()
     write_preview(out, out / "preview.png")
     return summary
 
@@ -158,12 +167,9 @@ def _build_map(cfg: MeridianConfig, ortho_path: Path, out: Path) -> Any:
     from meridian_torch.runtime import resolve_runtime
 
     runtime = resolve_runtime(cfg.runtime)
-    update, close = _progress_bar("building aerial map", "patch")
-    try:
+    with _progress("building aerial map", "patch") as update:
         return build_map_file(ortho_path, out, cfg.aerial_map, cfg.perception, cfg.primitives,
                               device=runtime.device, progress=update, on_message=typer.echo)
-    finally:
-        close()
 
 
 @convert_app.command("kitti")
@@ -182,12 +188,9 @@ def convert_kitti_command(
     """A KITTI odometry sequence -> a sequence folder (depth images from the lidar projected into camera 2)."""
     from meridian_torch.io.converters.kitti import convert_kitti
 
-    update, close = _progress_bar("converting", "frame")
-    try:
+    with _progress("converting", "frame") as update:
         counts = convert_kitti(source, odometry, ortho, out, odometry_frame=odometry_frame, overwrite=overwrite,
                                progress=update)
-    finally:
-        close()
     typer.echo(f"wrote {out}: {counts['frames']} frames")
 
 
@@ -214,16 +217,12 @@ def convert_rosbag_command(
     """A ROS 1 / ROS 2 bag -> a sequence folder (no ROS needed; camera extrinsics from /tf_static)."""
     from meridian_torch.io.converters.rosbag import convert_rosbag
 
-    update, close = _progress_bar("converting", "frame")
-    try:
+    with _progress("converting", "frame") as update:
         counts = convert_rosbag(bags, ortho, out, rgb_topic=rgb_topic, depth_topic=depth_topic,
                                 camera_info_topic=camera_info_topic, odometry_topic=odometry_topic,
                                 camera_at_base=camera_at_base, max_dt_s=max_dt,
                                 overwrite=overwrite, progress=update)
-    finally:
-        close()
-    typer.echo(f"wrote {out}: {counts['frames']} frames; skipped {counts['unpaired']} colour images without depth "
-               f"within {max_dt} s and {counts['without_pose']} outside the odometry")
+    _converted(out, counts, max_dt, "odometry")
 
 
 @convert_app.command("tum-rgbd")
@@ -244,14 +243,10 @@ def convert_tum_rgbd_command(
     """A TUM RGB-D benchmark sequence -> a sequence folder (frames paired by time, images undistorted)."""
     from meridian_torch.io.converters.tum_rgbd import convert_tum_rgbd
 
-    update, close = _progress_bar("converting", "frame")
-    try:
+    with _progress("converting", "frame") as update:
         counts = convert_tum_rgbd(source, ortho, out, camera=camera, trajectory=trajectory, max_dt_s=max_dt,
                                   overwrite=overwrite, progress=update)
-    finally:
-        close()
-    typer.echo(f"wrote {out}: {counts['frames']} frames; skipped {counts['unpaired']} colour images without depth "
-               f"within {max_dt} s and {counts['without_pose']} outside the trajectory")
+    _converted(out, counts, max_dt, "trajectory")
 
 
 @app.command("build-map")
@@ -328,11 +323,8 @@ def map_ground_command(
     reader = SequenceReader(sequence)
     mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
     started = time.perf_counter()
-    update, close = _progress_bar("mapping ground", "frame")
-    try:
+    with _progress("mapping ground", "frame") as update:
         submaps = mapper.map_sequence(reader, update)
-    finally:
-        close()
     seconds = time.perf_counter() - started
     out.mkdir(parents=True, exist_ok=True)
     save_ground_submaps(submaps, out / "submaps.mts", config=ground_map_config_dict(cfg),
@@ -586,17 +578,15 @@ def fit_vocabulary(
         return torch.from_numpy(rgb).permute(2, 0, 1)[None]
 
     started = time.perf_counter()
-    update, close = _progress_bar("extracting tokens", "image")
     try:
-        centers = anyloc.fit_vocabulary(
-            facet, (read_rgb(p) for p in images), num_clusters=c.num_clusters,
-            resize_short_side_px=c.resize_short_side_px, seed=seed, tokens_per_image=tokens_per_image,
-            progress=update, total=len(images),
-        )
+        with _progress("extracting tokens", "image") as update:
+            centers = anyloc.fit_vocabulary(
+                facet, (read_rgb(p) for p in images), num_clusters=c.num_clusters,
+                resize_short_side_px=c.resize_short_side_px, seed=seed, tokens_per_image=tokens_per_image,
+                progress=update, total=len(images),
+            )
     except ValueError as e:
         raise ConfigError(f"fit-vocabulary: {e}") from None
-    finally:
-        close()
     vocabulary = anyloc.Vocabulary(centers, architecture=c.architecture, layer=c.layer, facet=c.facet)
     anyloc.save_vocabulary(out, vocabulary)
     typer.echo(
