@@ -158,7 +158,7 @@ def _patch(aerial_map, index: int, lines: bool):
 
 
 class _FramePrefix:
-    """The first `n` frames of a sequence reader (what `map_ground` reads: camera, len, [i])."""
+    """The first `n` frames of a sequence reader (what `map_ground` reads: camera, len, [i], the gap check)."""
 
     def __init__(self, reader, n: int) -> None:
         self.reader, self.n, self.camera = reader, min(n, len(reader)), reader.camera
@@ -170,6 +170,9 @@ class _FramePrefix:
         if not 0 <= index < self.n:
             raise IndexError(index)
         return self.reader[index]
+
+    def require_odometry_without_gaps(self, max_gap_s: float) -> None:
+        self.reader.require_odometry_without_gaps(max_gap_s)
 
 
 def line_agreement(ground_lines: np.ndarray, aerial_lines: np.ndarray, T: np.ndarray, tol_m: float,
