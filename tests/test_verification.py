@@ -10,7 +10,12 @@ from hypothesis import strategies as st
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
-from meridian_torch.matching.verification import alignment_score, line_pieces, reweight_hypotheses
+from meridian_torch.matching.verification import (
+    alignment_score,
+    line_pieces,
+    near_parallel_pairs,
+    reweight_hypotheses,
+)
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
 
@@ -179,3 +184,28 @@ def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
     for other in runs[1:]:
         torch.testing.assert_close(runs[0].probability, other.probability)
         torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
+
+
+@pytest.mark.parametrize("angle_deg", [10.0, 45.0, 90.0])
+def test_near_parallel_pairs_equal_the_full_product(angle_deg: float) -> None:
+    gen = torch.Generator().manual_seed(3)
+
+    def directions(*shape: int) -> torch.Tensor:
+        angle = torch.rand(*shape, generator=gen, dtype=torch.float64) * 4 * math.pi - 2 * math.pi
+        return torch.stack([angle.cos(), angle.sin()], -1)
+
+    u, au = directions(3, 4, 9), directions(3, 11)
+    au[1, 2] = u[1, 0, 0]  # exactly parallel and anti-parallel pairs
+    au[2, 3] = -u[2, 1, 5]
+    line_valid = torch.rand(3, 11, generator=gen) > 0.2
+    piece, line = near_parallel_pairs(u, au, line_valid, angle_deg)
+    got = sorted(zip(piece.tolist(), line.tolist()))
+    cos_min = math.cos(math.radians(angle_deg))
+    expected = []  # the obvious loop over every (patch, pose, piece, aerial line)
+    for p in range(3):
+        for h in range(4):
+            for n in range(9):
+                for m in range(11):
+                    if line_valid[p, m] and abs(float(u[p, h, n] @ au[p, m])) >= cos_min:
+                        expected.append(((p * 4 + h) * 9 + n, p * 11 + m))
+    assert got == expected  # the same pairs, each once

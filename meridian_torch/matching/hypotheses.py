@@ -174,7 +174,6 @@ def cluster_hypotheses(
     Returns:
         `Hypotheses` with L = n_hypotheses.
     """
-    n_patches, n_sets, m = sets.masks.shape
     with stage("registration"):
         reg = register_sets(sets, assoc, ground, aerial, registration)
     with stage("clustering"):

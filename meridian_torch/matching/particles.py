@@ -19,8 +19,13 @@ Randomness is counter based: a 64-bit mix (splitmix64 finaliser) of (patch seed,
 particle, association index). The per-patch seeds are drawn from the caller's generator, so
 one seed gives identical runs, and a patch's trajectory depends on nothing but its own seed and
 data (not on the other patches in the batch, their early stopping or the padded width m). The
-Gaussian noise is the Irwin-Hall sum of four 16-bit uniforms, rescaled to unit variance: a
-bounded (|xi| < 3.47) but otherwise close stand-in, which is all the annealed Langevin noise needs.
+Gaussian noise of one step is a slab of a fixed table of standard normals (made once per
+process) read from a random offset per patch, entry (i, n) for coordinate i and particle n,
+with a random sign per particle: hashing every entry would cost as much as the drift.
+
+Cost: every step is in place on the (P, m, N) buffers (allocating them cost more than the
+arithmetic), and `match_submap` samples the pruned problems of all its patch chunks together
+(`concat_problems`), so the per-step overhead is paid once per match, not once per chunk.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
@@ -29,15 +34,19 @@ particle counts summed, and the sets are ranked by J(S) = 1_S' M 1_S / |S| (unpe
 
 Pruning: before sampling, each patch keeps its `max_associations` best supported associations
 (`support_pruning`, two-step walk counts on the affinity graph); masks are reported over all m.
-Particles x iterations on a CPU: the `ParticleConfig` defaults (32 x 100 on 128 associations)
-and the measurement behind them are in its field descriptions. Early stopping rarely fires
-before T because the annealed noise keeps the objective moving.
+Particles x iterations on a CPU: the `ParticleConfig` defaults and the measurement behind them
+are in its field descriptions. Early stopping rarely fires before T, and fewer steps are no
+cure: the preconditioner's first average is the huge penalty gradient of the dense random
+start (|g| ~ 10^4 against ~10^2 later), so the effective step grows from ~0.02 to ~1 only over
+the whole schedule (the mean objective turns positive only after ~40 of 100 steps). Measured on the KITTI
+00 / 09 worlds' rendered submaps (each against its true patch): 50 steps (also with alpha =
+0.81, the same schedule compressed) lost 15-26 points of known-rotation top-25 success, a
+preconditioner restarted after the first step found nothing.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import warnings
 from dataclasses import dataclass
 
@@ -46,22 +55,23 @@ from torch import Tensor
 
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.config import ParticleConfig
+from meridian_torch.matching.particle_noise import (
+    ROW,
+    mix,
+    noise_slabs,
+    patch_seeds,
+    row_words,
+    slab_table,
+    uniform,
+)
 
 __all__ = [
     "InlierSets", "SamplerProblem", "sample_inlier_sets", "sampler_problem", "concat_problems", "sample_problem",
     "patch_seeds", "support_pruning",
 ]
 
-# splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
-_MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
-_MIX_2 = 0x94D049BB133111EB - (1 << 64)
-_GOLDEN = 0x9E3779B97F4A7C15 - (1 << 64)
-_ROW = 0xD1B54A32D192ED03 - (1 << 64)
-# Fixed seeds (independent of the caller's generator) of the set-hash weights and of the noise
-# table; the table is long enough that two particles' windows rarely overlap.
+# Fixed seed (independent of the caller's generator) of the set-hash weights.
 _SET_HASH_SEED = 0x5E7
-_TABLE_SEED = 0x7AB1E
-_TABLE_SIZE = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -101,66 +111,6 @@ class SamplerProblem:
     pairs: Tensor
     index: Tensor
     m: int
-
-
-def _srl(z: Tensor, shift: int) -> Tensor:
-    """Logical right shift of int64 (torch's >> is arithmetic)."""
-    return (z >> shift) & ((1 << (64 - shift)) - 1)
-
-
-def _mix(z: Tensor) -> Tensor:
-    """splitmix64 finaliser on int64 tensors: a bijective, well-avalanched 64-bit hash."""
-    z = (z ^ _srl(z, 30)) * _MIX_1
-    z = (z ^ _srl(z, 27)) * _MIX_2
-    return z ^ _srl(z, 31)
-
-
-def _wrap64(value: int) -> int:
-    """A Python int reduced to the signed int64 range (two's complement)."""
-    return (value + (1 << 63)) % (1 << 64) - (1 << 63)
-
-
-def _row_words(seeds: Tensor, step: int, n_particles: int) -> Tensor:
-    """(P,) seeds -> (P, N) int64 random words of iteration `step` (one per particle)."""
-    base = _mix(seeds + _wrap64((step + 2) * _GOLDEN))
-    return _mix(base[:, None] + torch.arange(n_particles, device=seeds.device) * _ROW)
-
-
-def _uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
-    """int64 words -> U[0, 1) from their top 53 bits."""
-    return (_srl(z, 11).to(torch.float64) * 2.0**-53).to(dtype)
-
-
-@functools.lru_cache(maxsize=4)
-def _noise_table(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """_TABLE_SIZE fixed standard normals (seeded once, independent of the caller) followed by
-    their first _TABLE_SIZE - 1 again, so that every window of up to _TABLE_SIZE entries can be
-    read circularly from any offset. Made once per process: drawing it took a tenth of a match."""
-    gen = torch.Generator(device="cpu").manual_seed(_TABLE_SEED)
-    table = torch.randn(_TABLE_SIZE, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
-    return torch.cat([table, table[:-1]])
-
-
-def _slab_table(width: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """(_TABLE_SIZE, width) view of the circular noise table: row r = entries r .. r + width - 1."""
-    table = _noise_table(dtype, device)
-    if width > _TABLE_SIZE:
-        table = table[:_TABLE_SIZE].repeat(2 + width // _TABLE_SIZE)
-    return table[: _TABLE_SIZE + width - 1].unfold(0, width, 1)
-
-
-def _noise_slabs(slabs: Tensor, words: Tensor, m: int) -> Tensor:
-    """(P, N) words of one step -> (P, m, N) standard normals: patch p reads m x N consecutive
-    table entries (coordinate i, particle n at i N + n, so a coordinate sees the same numbers
-    whatever the padded width m) from an offset taken from its first particle's word. Hashing
-    every entry would cost as much as the drift."""
-    offset = _srl(words[:, 0], 1) % _TABLE_SIZE
-    return slabs.index_select(0, offset).view(len(offset), m, words.shape[1])
-
-
-def patch_seeds(n_patches: int, generator: torch.Generator) -> Tensor:
-    """(P,) int64 per-patch seeds drawn from `generator` (the only use of the generator)."""
-    return torch.randint(0, 1 << 62, (n_patches,), generator=generator, device=generator.device)
 
 
 class _BlockOperator:
@@ -235,11 +185,11 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
     n_particles, T = cfg.n_particles, cfg.n_iterations
     dtype, device = d.dtype, d.device
     validf = valid.to(dtype)
-    slabs = _slab_table(m * n_particles, dtype, device) if cfg.noise else None
-    coord_keys = _mix(torch.arange(m, device=device, dtype=torch.int64) + _ROW)
+    slabs = slab_table(m * n_particles, dtype, device) if cfg.noise else None
+    coord_keys = mix(torch.arange(m, device=device, dtype=torch.int64) + ROW)
 
-    init_words = _mix(_row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
-    x_out = _uniform(init_words, dtype) * validf[:, :, None]
+    init_words = mix(row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
+    x_out = uniform(init_words, dtype) * validf[:, :, None]
     iterations = torch.full((n_patches,), T, dtype=torch.int64, device=device)
     # Working batch: the patches still running (indices into the full batch).
     active = torch.arange(n_patches, device=device)
@@ -275,10 +225,10 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
                 d_act, v_act, seeds_act = d_act[keep], v_act[keep], seeds_act[keep]
         if slabs is not None:
             sigma = sqrt_eta * (1.0 - t / (T - 1)) if cfg.anneal else sqrt_eta
-            words = _row_words(seeds_act, t, n_particles)
+            words = row_words(seeds_act, t, n_particles)
             # A random sign per particle: two patches' slabs that overlap in the table still differ.
             signed_sigma = (sigma * (1.0 - 2.0 * (words & 1).to(dtype)))[:, None, :]
-            g.addcmul_(_noise_slabs(slabs, words, m), signed_sigma)
+            g.addcmul_(noise_slabs(slabs, words, m), signed_sigma)
         if cfg.rmsprop:
             if t == 0:
                 h = g.square()
@@ -335,7 +285,7 @@ def _upper_entries(M: Tensor, valid: Tensor) -> AffinityEntries:
     return AffinityEntries(M.indices()[:, upper].T, M.values()[upper], valid)
 
 
-def _prune(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int) -> "SamplerProblem":
+def _prune(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int) -> SamplerProblem:
     """`support_pruning` as a `SamplerProblem` (the kept entries without their diagonal)."""
     n_patches, m = valid.shape
     entries = M if isinstance(M, AffinityEntries) else _upper_entries(M, valid)

@@ -28,7 +28,7 @@ from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["alignment_score", "line_pieces", "reweight_hypotheses"]
+__all__ = ["alignment_score", "line_pieces", "near_parallel_pairs", "reweight_hypotheses"]
 
 
 def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
@@ -52,6 +52,48 @@ def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
     return torch.stack([a + f0 * (b - a), a + f1 * (b - a)], 1)
 
 
+def _sign_free_angle(u: Tensor) -> Tensor:
+    """Direction angle of unit vectors (..., 2) modulo pi, in [0, pi)."""
+    return torch.remainder(torch.atan2(u[..., 1], u[..., 0]), math.pi)
+
+
+def near_parallel_pairs(u: Tensor, au: Tensor, line_valid: Tensor, angle_deg: float) -> tuple[Tensor, Tensor]:
+    """Every ground direction u[p, h, n] (P, H, N, 2) and valid aerial direction au[p, m]
+    (P, M, 2) (unit vectors, signs free) with |u . au| >= cos(angle_deg), as flat indices
+    ((p H + h) N + n, p M + m): `(einsum(u, au).abs() >= cos).nonzero()` in another order and
+    form, without the (P, H, N, M) product
+    (verification's cost on real patches). Aerial lines are sorted by angle once per patch; each
+    ground direction takes its circular window of angle_deg + 1e-3 rad (at most two disjoint
+    ranges) by binary search, a strict superset as angles are exact to ~1e-7, and the exact
+    test runs on those candidates only."""
+    n_patches, n_aerial = au.shape[:2]
+    cos_min = math.cos(math.radians(angle_deg))
+    psi = _sign_free_angle(au).masked_fill(~line_valid, math.inf)  # invalid lines sort last
+    psi_sorted, order = torch.sort(psi, dim=1, stable=True)
+    alpha = _sign_free_angle(u).reshape(n_patches, -1)  # (P, Q) queries
+    half = math.radians(angle_deg) + 1e-3
+    zero, pi = alpha.new_zeros(alpha.shape), alpha.new_full(alpha.shape, math.pi)
+    if 2 * half >= math.pi:  # every direction is within the window
+        windows = [(zero, pi)]
+    else:  # [lo, hi] within [0, pi), plus the part wrapping around either end (never both)
+        lo, hi = alpha - half, alpha + half
+        windows = [(lo.clamp_min(0.0), hi.clamp_max(math.pi)), (lo + math.pi, pi), (zero, hi - math.pi)]
+    starts, counts = [], []
+    for w_lo, w_hi in windows:
+        start = torch.searchsorted(psi_sorted, w_lo.contiguous(), side="left")
+        starts.append(start)
+        counts.append((torch.searchsorted(psi_sorted, w_hi.contiguous(), side="right") - start).clamp_min(0))
+    start, count = torch.stack(starts, -1).reshape(-1), torch.stack(counts, -1).reshape(-1)  # (P * Q * W,)
+    window = torch.repeat_interleave(torch.arange(len(count), device=u.device), count)
+    position = torch.arange(len(window), device=u.device) + (start - torch.cumsum(count, 0) + count)[window]
+    query = window // len(windows)
+    patch = query // alpha.shape[1]
+    line = order.reshape(-1).index_select(0, patch * n_aerial + position) + patch * n_aerial
+    dot = (u.reshape(-1, 2).index_select(0, query) * au.reshape(-1, 2).index_select(0, line)).sum(-1)
+    keep = dot.abs() >= cos_min
+    return query[keep], line[keep]
+
+
 def alignment_score(
     T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
 ) -> Tensor:
@@ -67,7 +109,6 @@ def alignment_score(
     ground = ground.to(device=device, dtype=dtype)
     R, t = T_world_odom[..., :2, :2], T_world_odom[..., :2, 2]
     score = T_world_odom.new_zeros(T_world_odom.shape[:2])
-    cos_min = math.cos(math.radians(config.line_angle_deg))
     if len(ground.line_endpoints) and aerial.line_endpoints.shape[1]:
         pieces = line_pieces(ground.line_endpoints, config.line_piece_m)
         d = pieces[:, 1] - pieces[:, 0]  # (N, 2)
@@ -78,16 +119,11 @@ def alignment_score(
         A = aerial.line_endpoints.to(dtype)  # (P, M, 2, 2)
         ad = A[:, :, 1] - A[:, :, 0]
         au = ad / ad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        parallel = torch.einsum("phnk,pmk->phnm", u_world, au).abs() >= cos_min
-        parallel &= aerial.line_valid[:, None, None, :]
-        # Distances only for the near-parallel triples (a small share): index them instead of
-        # broadcasting (P, H, N, M, 2) temporaries.
-        p_i, h_i, n_i, m_i = parallel.nonzero(as_tuple=True)
-        d2 = _squared_segment_distance(mid[p_i, h_i, n_i], A[p_i, m_i, 0], A[p_i, m_i, 1])
+        piece, line = near_parallel_pairs(u_world, au, aerial.line_valid, config.line_angle_deg)
+        ends = A.reshape(-1, 4).index_select(0, line)
+        d2 = _squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
         closeness = (1.0 - d2 / config.line_distance_m**2).clamp_min(0.0)
-        P_, H_, N_ = parallel.shape[:3]
-        key = (p_i * H_ + h_i) * N_ + n_i
-        on_line = closeness.new_zeros(P_ * H_ * N_).scatter_reduce(0, key, closeness, "amax").reshape(P_, H_, N_)
+        on_line = closeness.new_zeros(mid.shape[:3].numel()).scatter_reduce(0, piece, closeness, "amax").view(mid.shape[:3])
         score = score + (on_line * length).sum(-1)
     if len(ground.points_xy) and aerial.points_xy.shape[1]:
         p = torch.einsum("phij,nj->phni", R, ground.points_xy) + t[:, :, None]  # (P, H, N, 2)
