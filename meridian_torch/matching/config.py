@@ -378,9 +378,9 @@ class MatchConfig(StrictModel):
     patch_chunk: int = Field(
         default=8,
         ge=1,
-        description="patches whose affinities are built and sampled together (bounds peak memory; results do "
-        "not depend on it). Bench case (25 patches, m = 2000, 1 thread): the sparse affinity of all 25 at "
-        "once raised the peak by ~370 MB",
+        description="patches whose affinities are built together (bounds peak memory; results do not depend on "
+        "it). Their pruned problems are sampled in one batch with those of the other chunks. Bench case (25 "
+        "patches, m = 2000, 1 thread): the sparse affinity of all 25 at once raised the peak by ~370 MB",
     )
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     hypotheses_per_patch: int = Field(default=25, ge=1, description="L, clustered hypotheses kept per patch")
