@@ -13,8 +13,8 @@ from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.verification import (
     alignment_score,
     line_pieces,
-    near_parallel_pairs,
     reweight_hypotheses,
+    segments_near_points,
 )
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
@@ -186,26 +186,27 @@ def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
         torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
 
 
-@pytest.mark.parametrize("angle_deg", [10.0, 45.0, 90.0])
-def test_near_parallel_pairs_equal_the_full_product(angle_deg: float) -> None:
+@pytest.mark.parametrize("radius", [0.4, 1.5, 6.0])
+def test_segments_near_points_finds_every_close_pair_once(radius: float) -> None:
     gen = torch.Generator().manual_seed(3)
-
-    def directions(*shape: int) -> torch.Tensor:
-        angle = torch.rand(*shape, generator=gen, dtype=torch.float64) * 4 * math.pi - 2 * math.pi
-        return torch.stack([angle.cos(), angle.sin()], -1)
-
-    u, au = directions(3, 4, 9), directions(3, 11)
-    au[1, 2] = u[1, 0, 0]  # exactly parallel and anti-parallel pairs
-    au[2, 3] = -u[2, 1, 5]
-    line_valid = torch.rand(3, 11, generator=gen) > 0.2
-    piece, line = near_parallel_pairs(u, au, line_valid, angle_deg)
-    got = sorted(zip(piece.tolist(), line.tolist()))
-    cos_min = math.cos(math.radians(angle_deg))
-    expected = []  # the obvious loop over every (patch, pose, piece, aerial line)
-    for p in range(3):
-        for h in range(4):
-            for n in range(9):
-                for m in range(11):
-                    if line_valid[p, m] and abs(float(u[p, h, n] @ au[p, m])) >= cos_min:
-                        expected.append(((p * 4 + h) * 9 + n, p * 11 + m))
-    assert got == expected  # the same pairs, each once
+    ends = torch.rand(3, 12, 2, 2, generator=gen, dtype=torch.float64) * 30
+    ends[0, 1, 1] = ends[0, 1, 0]  # a degenerate segment
+    points = torch.rand(3, 40, 2, generator=gen, dtype=torch.float64) * 36 - 3
+    points[1, :12] = ends[1, :, 0] + 0.7 * radius  # points at about the radius
+    valid = torch.rand(3, 12, generator=gen) > 0.2
+    valid[2] = False  # a patch without segments
+    query, segment = segments_near_points(points, ends, valid, radius)
+    found = set(zip(query.tolist(), segment.tolist()))
+    assert len(found) == len(query)  # each pair at most once
+    n_close = 0
+    for p in range(3):  # the obvious loop: every valid segment closer than radius to a point
+        for q in range(40):
+            for m in range(12):
+                a, b = ends[p, m, 0], ends[p, m, 1]
+                t = float(((points[p, q] - a) @ (b - a)) / (b - a).square().sum().clamp_min(1e-12))
+                distance = float((a + min(max(t, 0.0), 1.0) * (b - a) - points[p, q]).norm())
+                if valid[p, m] and distance < radius:
+                    assert (p * 40 + q, p * 12 + m) in found
+                    n_close += 1
+    assert n_close > 0
+    assert all(valid.reshape(-1)[s] and s // 12 == q // 40 for q, s in found)  # same patch, valid only

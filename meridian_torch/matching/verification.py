@@ -28,7 +28,7 @@ from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["alignment_score", "line_pieces", "near_parallel_pairs", "reweight_hypotheses"]
+__all__ = ["alignment_score", "line_pieces", "reweight_hypotheses", "segments_near_points"]
 
 
 def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
@@ -52,46 +52,49 @@ def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
     return torch.stack([a + f0 * (b - a), a + f1 * (b - a)], 1)
 
 
-def _sign_free_angle(u: Tensor) -> Tensor:
-    """Direction angle of unit vectors (..., 2) modulo pi, in [0, pi)."""
-    return torch.remainder(torch.atan2(u[..., 1], u[..., 0]), math.pi)
-
-
-def near_parallel_pairs(u: Tensor, au: Tensor, line_valid: Tensor, angle_deg: float) -> tuple[Tensor, Tensor]:
-    """Every ground direction u[p, h, n] (P, H, N, 2) and valid aerial direction au[p, m]
-    (P, M, 2) (unit vectors, signs free) with |u . au| >= cos(angle_deg), as flat indices
-    ((p H + h) N + n, p M + m): `(einsum(u, au).abs() >= cos).nonzero()` in another order and
-    form, without the (P, H, N, M) product
-    (verification's cost on real patches). Aerial lines are sorted by angle once per patch; each
-    ground direction takes its circular window of angle_deg + 1e-3 rad (at most two disjoint
-    ranges) by binary search, a strict superset as angles are exact to ~1e-7, and the exact
-    test runs on those candidates only."""
-    n_patches, n_aerial = au.shape[:2]
-    cos_min = math.cos(math.radians(angle_deg))
-    psi = _sign_free_angle(au).masked_fill(~line_valid, math.inf)  # invalid lines sort last
-    psi_sorted, order = torch.sort(psi, dim=1, stable=True)
-    alpha = _sign_free_angle(u).reshape(n_patches, -1)  # (P, Q) queries
-    half = math.radians(angle_deg) + 1e-3
-    zero, pi = alpha.new_zeros(alpha.shape), alpha.new_full(alpha.shape, math.pi)
-    if 2 * half >= math.pi:  # every direction is within the window
-        windows = [(zero, pi)]
-    else:  # [lo, hi] within [0, pi), plus the part wrapping around either end (never both)
-        lo, hi = alpha - half, alpha + half
-        windows = [(lo.clamp_min(0.0), hi.clamp_max(math.pi)), (lo + math.pi, pi), (zero, hi - math.pi)]
-    starts, counts = [], []
-    for w_lo, w_hi in windows:
-        start = torch.searchsorted(psi_sorted, w_lo.contiguous(), side="left")
-        starts.append(start)
-        counts.append((torch.searchsorted(psi_sorted, w_hi.contiguous(), side="right") - start).clamp_min(0))
-    start, count = torch.stack(starts, -1).reshape(-1), torch.stack(counts, -1).reshape(-1)  # (P * Q * W,)
-    window = torch.repeat_interleave(torch.arange(len(count), device=u.device), count)
-    position = torch.arange(len(window), device=u.device) + (start - torch.cumsum(count, 0) + count)[window]
-    query = window // len(windows)
-    patch = query // alpha.shape[1]
-    line = order.reshape(-1).index_select(0, patch * n_aerial + position) + patch * n_aerial
-    dot = (u.reshape(-1, 2).index_select(0, query) * au.reshape(-1, 2).index_select(0, line)).sum(-1)
-    keep = dot.abs() >= cos_min
-    return query[keep], line[keep]
+def segments_near_points(points: Tensor, ends: Tensor, valid: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Pairs of a point points[p, q] (P, Q, 2) and a valid segment ends[p, m] (P, M, 2, 2) of
+    the same patch as flat indices (p Q + q, p M + m): every pair closer than `radius`, and
+    some farther ones. A grid of radius / 2 apart samples along every segment, each registered
+    in the 3 x 3 cells of 1.5 radius around its own; a point takes its cell's segments.
+    Exhaustive because a point within radius of a segment is within 1.25 radius of a sample,
+    less than one cell (verification's cost on real patches was the (pose, piece, aerial line)
+    product, of which a few per cent lie that close)."""
+    n_patches, n_points = points.shape[:2]
+    n_segments = ends.shape[1]
+    cell, spacing = 1.5 * radius, 0.5 * radius
+    a, b = ends[..., 0, :].reshape(-1, 2), ends[..., 1, :].reshape(-1, 2)
+    n_samples = (torch.ceil((b - a).norm(dim=-1) / spacing).long() + 1) * valid.reshape(-1)
+    segment = torch.repeat_interleave(torch.arange(len(a), device=a.device), n_samples)
+    step = torch.arange(len(segment), device=a.device) - (torch.cumsum(n_samples, 0) - n_samples)[segment]
+    f = (step / (n_samples[segment] - 1).clamp_min(1)).to(a.dtype)[:, None]
+    samples = a[segment] + f * (b[segment] - a[segment])
+    patch = segment // max(n_segments, 1)
+    # Per patch grid from one cell below its lowest sample, so every neighbour cell index is >= 0.
+    origin = torch.full((n_patches, 2), math.inf, dtype=a.dtype, device=a.device)
+    origin = origin.scatter_reduce(0, patch[:, None].expand(-1, 2), samples, "amin") - cell
+    ij = torch.floor((samples - origin[patch]) / cell).long()
+    size = ij.amax(0) + 2 if len(ij) else torch.ones(2, dtype=torch.long, device=a.device)
+    width, height = int(size[0]), int(size[1])
+    offsets = torch.tensor([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=a.device)
+    cells = ij[:, None, :] + offsets  # (samples, 9, 2)
+    key = (patch[:, None] * height + cells[..., 1]) * width + cells[..., 0]
+    n_keys = n_patches * height * width
+    # unique: one entry per (cell, segment), cells ascending.
+    entry = torch.unique(key * len(a) + segment[:, None])
+    entry_segment, entry_key = entry % max(len(a), 1), entry // max(len(a), 1)
+    counts = torch.bincount(entry_key, minlength=n_keys)
+    starts = torch.cumsum(counts, 0) - counts
+    # Each point's cell (points of patches without segments, or outside the grid, take none).
+    q_patch = torch.arange(n_patches, device=a.device).repeat_interleave(n_points)
+    q_ij = torch.floor((points.reshape(-1, 2) - origin[q_patch]) / cell)
+    inside = torch.isfinite(q_ij).all(-1) & (q_ij >= 0).all(-1) & (q_ij[:, 0] < width) & (q_ij[:, 1] < height)
+    q_ij = torch.where(inside[:, None], q_ij, 0).long()
+    q_key = (q_patch * height + q_ij[:, 1]) * width + q_ij[:, 0]
+    q_count = counts[q_key] * inside
+    query = torch.repeat_interleave(torch.arange(len(q_key), device=a.device), q_count)
+    position = torch.arange(len(query), device=a.device) + (starts[q_key] - torch.cumsum(q_count, 0) + q_count)[query]
+    return query, entry_segment[position]
 
 
 def alignment_score(
@@ -119,7 +122,11 @@ def alignment_score(
         A = aerial.line_endpoints.to(dtype)  # (P, M, 2, 2)
         ad = A[:, :, 1] - A[:, :, 0]
         au = ad / ad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        piece, line = near_parallel_pairs(u_world, au, aerial.line_valid, config.line_angle_deg)
+        # Only aerial lines closer than line_distance_m score; of those the near-parallel ones.
+        piece, line = segments_near_points(mid.flatten(1, 2), A, aerial.line_valid, config.line_distance_m)
+        u_piece, u_line = u_world.reshape(-1, 2).index_select(0, piece), au.reshape(-1, 2).index_select(0, line)
+        parallel = (u_piece * u_line).sum(-1).abs() >= math.cos(math.radians(config.line_angle_deg))
+        piece, line = piece[parallel], line[parallel]
         ends = A.reshape(-1, 4).index_select(0, line)
         d2 = _squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
         closeness = (1.0 - d2 / config.line_distance_m**2).clamp_min(0.0)
