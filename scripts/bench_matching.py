@@ -11,6 +11,8 @@ Synthetic scenes (all sizes are flags; the defaults are the issue-15 case, one s
   T_world_odom, with 0.3 m position noise and perturbed descriptors, plus random outliers up to
   the same size; the other patches are random primitives around random world centres.
 `--cases N` scenes (seeds seed .. seed + N - 1) are matched; the table shows medians over them.
+`--submaps` takes recorded cases instead: rendered ground submaps (exp_registration.py --cache),
+each against the 25 patches of its map nearest its true position.
 
 Measured, each in a fresh subprocess (`--mode batched|loop|clipper`, spawned by the parent), so
 that the process peak resident set size (ru_maxrss) belongs to that one stage:
@@ -28,6 +30,8 @@ time the two modes solve identical problems (reported as "same per-patch seeds")
 
     python scripts/bench_matching.py --threads 1 --skip-clipper --baseline-src /path/to/old/tree
     python scripts/bench_matching.py --quick --cases 3
+    python scripts/bench_matching.py --threads 1 --skip-clipper --submaps runs/exp00/submaps.pt \
+        --map runs/exp00/aerial.mtm --sequence runs/exp00/sequence
 """
 
 from __future__ import annotations
@@ -126,6 +130,45 @@ def build_scene(args: argparse.Namespace):
     return ground, patches, true_idx, (yaw, float(t[0]), float(t[1]))
 
 
+def real_scenes(args: argparse.Namespace) -> list:
+    """Recorded cases (`--submaps`): each ground submap against the `--patches` patches of `--map`
+    nearest its true position (from the sequence's groundtruth.tum), as `build_scene` returns them."""
+    import numpy as np
+    import torch
+
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    from exp_registration import containing_patch, true_T_world_odom
+
+    from meridian_torch.geometry.se3 import interpolate_poses
+    from meridian_torch.io.map_file import load_aerial_map
+    from meridian_torch.io.sequence import SequenceReader
+    from meridian_torch.types import PrimitiveSet
+
+    aerial_map = load_aerial_map(args.map)
+    gt = SequenceReader(args.sequence).groundtruth
+    b = aerial_map.primitives
+    scenes = []
+    for submap in torch.load(args.submaps, weights_only=False)[: args.cases]:
+        T_map_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
+        T_map_base[:2, 3] -= aerial_map.local_origin_xy
+        T_true = true_T_world_odom(T_map_base, submap.T_odom_base)
+        nearest = np.argsort(np.linalg.norm(aerial_map.patches.centres_xy - T_map_base[:2, 3], axis=1))[: args.patches]
+        true_patch = containing_patch(aerial_map.patches.centres_xy, aerial_map.patches.bounds_xy, T_map_base[:2, 3])
+        patches = []
+        for index in nearest.tolist():
+            pv, lv = b.point_valid[index], b.line_valid[index]
+            patches.append(PrimitiveSet(
+                b.points_xy[index][pv], b.point_descriptors[index][pv], torch.arange(int(pv.sum())),
+                b.line_endpoints[index][lv], b.line_kinds[index][lv], b.line_descriptors[index][lv],
+                torch.arange(int(lv.sum())),
+            ))
+        true_idx = nearest.tolist().index(true_patch) if true_patch in nearest.tolist() else 0
+        truth = (math.atan2(T_true[1, 0], T_true[0, 0]), float(T_true[0, 2]), float(T_true[1, 2]))
+        scenes.append((submap.primitives, patches, true_idx, truth))
+    return scenes
+
+
 def make_config(args: argparse.Namespace):
     """The shipped matching config (configs/default.yaml), with the options given on the command line."""
     from meridian_torch.config import CONFIG_DIR, load_config
@@ -180,7 +223,10 @@ def run_match_mode(args: argparse.Namespace) -> dict:
 
     rss_imports = peak_rss_mib()
     cfg = make_config(args)
-    scenes = [build_scene(argparse.Namespace(**{**vars(args), "seed": args.seed + c})) for c in range(args.cases)]
+    if args.submaps:
+        scenes = real_scenes(args)
+    else:
+        scenes = [build_scene(argparse.Namespace(**{**vars(args), "seed": args.seed + c})) for c in range(args.cases)]
 
     warmup_s = 0.0
     if not args.no_warmup:  # tiny problem: loads lazy code paths without touching the peak much
@@ -303,12 +349,16 @@ def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
         f"{cfg.particles.max_associations or 'all'} associations, k_prim {cfg.associations.k_prim} "
         "(each tree's shipped config unless given)"
     )
-    print(
-        f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
-        f"D={args.descriptor_dim}, {args.classes} classes); {n_patches} aerial patches of "
-        f"{args.aerial_points} points + {args.aerial_lines} lines; true patch holds "
-        f"{args.inlier_fraction:.0%} of the ground with {args.noise} m noise"
-    )
+    if args.submaps:
+        print(f"recorded cases: the first {args.cases} submaps of {args.submaps}, each against the {args.patches} "
+              f"patches of {args.map} nearest its true position ({args.sequence}/groundtruth.tum)")
+    else:
+        print(
+            f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
+            f"D={args.descriptor_dim}, {args.classes} classes); {n_patches} aerial patches of "
+            f"{args.aerial_points} points + {args.aerial_lines} lines; true patch holds "
+            f"{args.inlier_fraction:.0%} of the ground with {args.noise} m noise"
+        )
     print(f"load average before: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     trees = [("this tree", None)] + ([("baseline", args.baseline_src)] if args.baseline_src else [])
     results = {}
@@ -383,6 +433,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="support pruning before sampling, 0 = off (default: shipped)")
     p.add_argument("--k-prim", type=int, default=None, help="semantic neighbours per ground primitive (default: shipped)")
     p.add_argument("--solver", choices=["particles", "clipper"], default="particles", help="inlier-set solver")
+    p.add_argument("--submaps", default=None,
+                   help="recorded cases instead of synthetic scenes: ground submaps saved by exp_registration.py --cache "
+                   "(needs --map and --sequence)")
+    p.add_argument("--map", default=None, help="with --submaps: the aerial map (.mtm)")
+    p.add_argument("--sequence", default=None, help="with --submaps: the sequence folder with groundtruth.tum")
     # Defaults: the issue-15 case, about 20 ground and 65 aerial primitives per patch.
     p.add_argument("--ground-points", type=int, default=8)
     p.add_argument("--ground-lines", type=int, default=12)
@@ -407,7 +462,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.submaps and not (args.map and args.sequence):
+        parser.error("--submaps needs --map and --sequence")
     if args.mode is None:
         orchestrate(args, argv)
         return
