@@ -70,9 +70,10 @@ def segments_near_points(points: Tensor, ends: Tensor, valid: Tensor, radius: fl
     f = (step / (n_samples[segment] - 1).clamp_min(1)).to(a.dtype)[:, None]
     samples = a[segment] + f * (b[segment] - a[segment])
     patch = segment // max(n_segments, 1)
-    # Per patch grid from one cell below its lowest sample, so every neighbour cell index is >= 0.
+    # Per patch grid from two cells below its lowest sample: every neighbour cell index is >= 0
+    # even where rounding puts a sample one cell lower.
     origin = torch.full((n_patches, 2), math.inf, dtype=a.dtype, device=a.device)
-    origin = origin.scatter_reduce(0, patch[:, None].expand(-1, 2), samples, "amin") - cell
+    origin = origin.scatter_reduce(0, patch[:, None].expand(-1, 2), samples, "amin") - 2 * cell
     ij = torch.floor((samples - origin[patch]) / cell).long()
     size = ij.amax(0) + 2 if len(ij) else torch.ones(2, dtype=torch.long, device=a.device)
     width, height = int(size[0]), int(size[1])
