@@ -46,7 +46,8 @@ REPO = Path(__file__).resolve().parents[1]
 STAGE_ORDER = (
     "read frames", "ground mapping", "global descriptors", "segmentation", "segment descriptors",
     "observations", "tracking", "submaps", "localization", "place recognition", "matching", "associations",
-    "affinity", "particles", "clipper", "registration and clustering", "verification", "consistency", "pose graph",
+    "affinity", "pruning", "particles", "clipper", "registration", "clustering",
+    "verification", "consistency", "pose graph",
     "final pass",
 )
 

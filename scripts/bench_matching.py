@@ -1,29 +1,37 @@
-"""Benchmark `match_submap`: one batched call over P aerial patches vs a per-patch loop.
+"""Benchmark `match_submap`: one batched call over P aerial patches vs a per-patch loop, at the
+shipped matching config (configs/default.yaml; flags override single values).
 
-Synthetic scene (all sizes are flags):
-- one ground submap of 60 points + 40 lines, random positions in a disc of radius `--radius`
+Synthetic scenes (all sizes are flags; the defaults are the issue-15 case, one submap against
+25 patches of about 20 ground and 65 aerial primitives):
+- one ground submap of 8 points + 12 lines, random positions in a disc of radius `--radius`
   metres around the odom origin, L2-normalised D = 32 descriptors drawn around 8 class centres
   (so top-k semantic neighbours are informative but not unique);
-- P = 25 aerial patches (5 with `--quick`) of 90 points + 60 lines each in the world frame.
+- P = 25 aerial patches (5 with `--quick`) of 25 points + 40 lines each in the world frame.
   One of them (the "true" patch) holds 70 % of the ground primitives moved by a known SE(2)
   T_world_odom, with 0.3 m position noise and perturbed descriptors, plus random outliers up to
   the same size; the other patches are random primitives around random world centres.
+`--cases N` scenes (seeds seed .. seed + N - 1) are matched; the table shows medians over them.
+`--submaps` takes recorded cases instead: rendered ground submaps (exp_registration.py --cache),
+each against the 25 patches of its map nearest its true position.
 
 Measured, each in a fresh subprocess (`--mode batched|loop|clipper`, spawned by the parent), so
 that the process peak resident set size (ru_maxrss) belongs to that one stage:
   (a) batched: `match_submap(ground, stack_primitive_sets(all patches), ...)` in one call;
   (b) loop:    `match_submap(ground, stack_primitive_sets([patch]), ...)` for every patch;
   (c) clipper: `bench_clipper(sizes, seed)` from scripts/bench_clipper.py (CLIPPER solver alone
-      on random planted-clique graphs, n = 500, 1000, 2000 by default).
-For (a) and (b) it reports wall time (after a tiny warm-up match that loads lazy code paths),
-the peak RSS of the process and its increase over the RSS after building the scene, and whether
-the top hypothesis of the true patch is within 5 m / 5 deg of the planted transform. Both modes
-draw the per-patch particle seeds from one generator seeded with `--seed`, so if torch's
-generator yields the same sequence one draw at a time the two modes solve identical problems
-(reported as "same per-patch seeds").
+      on random planted-clique graphs, n = 500, 1000, 2000 by default; `--skip-clipper`).
+With `--baseline-src DIR` (e.g. a checkout of an older commit) (a) and (b) also run on the
+package under DIR, each tree at its own shipped config, alternating with this tree's children.
+For (a) and (b) it reports wall and process CPU time per submap (after a tiny warm-up match that
+loads lazy code paths), the peak RSS, and whether the top hypothesis of the true patch is within
+5 m / 5 deg of the planted transform. Both modes draw the per-patch particle seeds from one
+generator seeded with `--seed`, so if torch's generator yields the same sequence one draw at a
+time the two modes solve identical problems (reported as "same per-patch seeds").
 
-    python scripts/bench_matching.py --quick
-    python scripts/bench_matching.py --particles 64 --iterations 200 --max-associations 0
+    python scripts/bench_matching.py --threads 1 --skip-clipper --baseline-src /path/to/old/tree
+    python scripts/bench_matching.py --quick --cases 3
+    python scripts/bench_matching.py --threads 1 --skip-clipper --submaps runs/exp00/submaps.pt \
+        --map runs/exp00/aerial.mtm --sequence runs/exp00/sequence
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import dataclasses
 import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -121,6 +130,45 @@ def build_scene(args: argparse.Namespace):
     return ground, patches, true_idx, (yaw, float(t[0]), float(t[1]))
 
 
+def real_scenes(args: argparse.Namespace) -> list:
+    """Recorded cases (`--submaps`): each ground submap against the `--patches` patches of `--map`
+    nearest its true position (from the sequence's groundtruth.tum), as `build_scene` returns them."""
+    import numpy as np
+    import torch
+
+    if HERE not in sys.path:
+        sys.path.insert(0, HERE)
+    from exp_registration import containing_patch, true_T_world_odom
+
+    from meridian_torch.geometry.se3 import interpolate_poses
+    from meridian_torch.io.map_file import load_aerial_map
+    from meridian_torch.io.sequence import SequenceReader
+    from meridian_torch.types import PrimitiveSet
+
+    aerial_map = load_aerial_map(args.map)
+    gt = SequenceReader(args.sequence).groundtruth
+    b = aerial_map.primitives
+    scenes = []
+    for submap in torch.load(args.submaps, weights_only=False)[: args.cases]:
+        T_map_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
+        T_map_base[:2, 3] -= aerial_map.local_origin_xy
+        T_true = true_T_world_odom(T_map_base, submap.T_odom_base)
+        nearest = np.argsort(np.linalg.norm(aerial_map.patches.centres_xy - T_map_base[:2, 3], axis=1))[: args.patches]
+        true_patch = containing_patch(aerial_map.patches.centres_xy, aerial_map.patches.bounds_xy, T_map_base[:2, 3])
+        patches = []
+        for index in nearest.tolist():
+            pv, lv = b.point_valid[index], b.line_valid[index]
+            patches.append(PrimitiveSet(
+                b.points_xy[index][pv], b.point_descriptors[index][pv], torch.arange(int(pv.sum())),
+                b.line_endpoints[index][lv], b.line_kinds[index][lv], b.line_descriptors[index][lv],
+                torch.arange(int(lv.sum())),
+            ))
+        true_idx = nearest.tolist().index(true_patch) if true_patch in nearest.tolist() else 0
+        truth = (math.atan2(T_true[1, 0], T_true[0, 0]), float(T_true[0, 2]), float(T_true[1, 2]))
+        scenes.append((submap.primitives, patches, true_idx, truth))
+    return scenes
+
+
 def make_config(args: argparse.Namespace):
     """The shipped matching config (configs/default.yaml), with the options given on the command line."""
     from meridian_torch.config import CONFIG_DIR, load_config
@@ -165,6 +213,7 @@ def _top(hyp, p: int, truth: tuple[float, float, float]) -> dict:
 
 
 def run_match_mode(args: argparse.Namespace) -> dict:
+    """`--cases` independent scenes (seeds seed, seed + 1, ...), each matched in this child's mode."""
     import torch
 
     torch.set_num_threads(args.threads)
@@ -173,11 +222,15 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     from meridian_torch.types import stack_primitive_sets
 
     rss_imports = peak_rss_mib()
-    ground, patches, true_idx, truth = build_scene(args)
     cfg = make_config(args)
+    if args.submaps:
+        scenes = real_scenes(args)
+    else:
+        scenes = [build_scene(argparse.Namespace(**{**vars(args), "seed": args.seed + c})) for c in range(args.cases)]
 
     warmup_s = 0.0
     if not args.no_warmup:  # tiny problem: loads lazy code paths without touching the peak much
+        ground, patches = scenes[0][0], scenes[0][1]
         one = stack_primitive_sets([patches[0]])
         small = type(one)(*[getattr(one, f.name)[:, :8] for f in dataclasses.fields(one)])
         small_cfg = cfg.model_copy(
@@ -188,51 +241,51 @@ def run_match_mode(args: argparse.Namespace) -> dict:
         warmup_s = time.perf_counter() - t0
 
     # Do the two modes get the same per-patch seeds from one generator?
+    n_patches = len(scenes[0][1])
     g1, g2 = torch.Generator().manual_seed(args.seed), torch.Generator().manual_seed(args.seed)
-    same_seeds = torch.equal(patch_seeds(len(patches), g1), torch.cat([patch_seeds(1, g2) for _ in patches]))
+    same_seeds = torch.equal(patch_seeds(n_patches, g1), torch.cat([patch_seeds(1, g2) for _ in range(n_patches)]))
 
     rss_before = current_rss_mib()
     peak_before = peak_rss_mib()
-    gen = torch.Generator().manual_seed(args.seed)
-    per_patch = []
-    cpu0 = time.process_time()
-    if args.mode == "batched":
-        batch = stack_primitive_sets(patches)
-        t0 = time.perf_counter()
-        hyp = match_submap(ground, batch, config=cfg, generator=gen)
-        elapsed = time.perf_counter() - t0
-        tops = [_top(hyp, p, truth) for p in range(len(patches))]
-    else:
-        tops = []
-        t0 = time.perf_counter()
-        for patch in patches:
-            s = time.perf_counter()
-            hyp = match_submap(ground, stack_primitive_sets([patch]), config=cfg, generator=gen)
-            per_patch.append(time.perf_counter() - s)
-            tops.append(_top(hyp, 0, truth))
-        elapsed = time.perf_counter() - t0
-    cpu = time.process_time() - cpu0
-    peak_after = peak_rss_mib()
-    best = max(range(len(patches)), key=lambda p: tops[p]["objective"] if tops[p]["valid"] else -1.0)
+    cases = []
+    for ground, patches, true_idx, truth in scenes:
+        gen = torch.Generator().manual_seed(args.seed)
+        cpu0 = time.process_time()
+        if args.mode == "batched":
+            batch = stack_primitive_sets(patches)
+            t0 = time.perf_counter()
+            hyp = match_submap(ground, batch, config=cfg, generator=gen)
+            elapsed = time.perf_counter() - t0
+            tops = [_top(hyp, p, truth) for p in range(len(patches))]
+        else:
+            tops = []
+            t0 = time.perf_counter()
+            for patch in patches:
+                hyp = match_submap(ground, stack_primitive_sets([patch]), config=cfg, generator=gen)
+                tops.append(_top(hyp, 0, truth))
+            elapsed = time.perf_counter() - t0
+        best = max(range(len(patches)), key=lambda p: tops[p]["objective"] if tops[p]["valid"] else -1.0)
+        cases.append({
+            "time_s": elapsed,
+            "cpu_s": time.process_time() - cpu0,
+            "true_idx": true_idx,
+            "truth": truth,
+            "true_top": tops[true_idx],
+            "best_is_true": best == true_idx,
+            "other_patches_within": sum(t["within_5m_5deg"] for p, t in enumerate(tops) if p != true_idx),
+        })
     return {
         "mode": args.mode,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
-        "n_patches": len(patches),
-        "true_idx": true_idx,
-        "truth": truth,
-        "time_s": elapsed,
-        "cpu_s": cpu,
+        "n_patches": n_patches,
+        "cases": cases,
         "warmup_s": warmup_s,
-        "per_patch_s": per_patch,
         "rss_imports_mib": rss_imports,
         "rss_before_mib": rss_before,
         "peak_before_mib": peak_before,
-        "peak_after_mib": peak_after,
+        "peak_after_mib": peak_rss_mib(),
         "same_seeds": same_seeds,
-        "true_top": tops[true_idx],
-        "best_patch_by_objective": best,
-        "other_patches_within": sum(t["within_5m_5deg"] for p, t in enumerate(tops) if p != true_idx),
     }
 
 
@@ -254,12 +307,15 @@ def run_clipper_mode(args: argparse.Namespace) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def _child(args: argparse.Namespace, argv: list[str], mode: str) -> dict:
+def _child(args: argparse.Namespace, argv: list[str], mode: str, source: str | None = None) -> dict:
+    """Runs `--mode mode` in a fresh interpreter; `source` = the package tree it imports (PYTHONPATH)."""
     cmd = [sys.executable, os.path.abspath(__file__), *argv, "--mode", mode]
     # Passive OpenMP waiting: on a shared 2-core machine a second busy process otherwise makes every
     # 2-thread op wait out spinning/descheduled workers (measured: match_submap 1.4 s -> 34-42 s).
     env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads),
                OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
+    if source is not None:
+        env["PYTHONPATH"] = os.pathsep.join([source] + [p for p in [os.environ.get("PYTHONPATH")] if p])
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         sys.stderr.write(proc.stdout + proc.stderr)
@@ -269,6 +325,10 @@ def _child(args: argparse.Namespace, argv: list[str], mode: str) -> dict:
             return json.loads(line[len(RESULT_TAG):])
     sys.stderr.write(proc.stdout + proc.stderr)
     raise SystemExit(f"child --mode {mode} printed no result")
+
+
+def _median(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
 
 
 def _fmt_top(top: dict) -> str:
@@ -284,52 +344,60 @@ def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
     n_patches = 5 if args.quick else args.patches
     cfg = make_config(args)
     print(
-        f"bench_matching: seed {args.seed}, {args.threads} torch threads, solver {args.solver}, "
+        f"bench_matching: seed {args.seed}, {args.cases} cases, {args.threads} torch threads, solver {args.solver}, "
         f"particles {cfg.particles.n_particles}, iterations {cfg.particles.n_iterations}, pruned to "
         f"{cfg.particles.max_associations or 'all'} associations, k_prim {cfg.associations.k_prim} "
-        "(the shipped config unless given)"
+        "(each tree's shipped config unless given)"
     )
-    print(
-        f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
-        f"D={args.descriptor_dim}, {args.classes} classes); {n_patches} aerial patches of "
-        f"{args.aerial_points} points + {args.aerial_lines} lines; true patch holds "
-        f"{args.inlier_fraction:.0%} of the ground with {args.noise} m noise"
-    )
+    if args.submaps:
+        print(f"recorded cases: the first {args.cases} submaps of {args.submaps}, each against the {args.patches} "
+              f"patches of {args.map} nearest its true position ({args.sequence}/groundtruth.tum)")
+    else:
+        print(
+            f"scene: ground {args.ground_points} points + {args.ground_lines} lines (radius {args.radius} m, "
+            f"D={args.descriptor_dim}, {args.classes} classes); {n_patches} aerial patches of "
+            f"{args.aerial_points} points + {args.aerial_lines} lines; true patch holds "
+            f"{args.inlier_fraction:.0%} of the ground with {args.noise} m noise"
+        )
+    print(f"load average before: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    trees = [("this tree", None)] + ([("baseline", args.baseline_src)] if args.baseline_src else [])
     results = {}
     for mode in ("batched", "loop"):
-        t0 = time.perf_counter()
-        results[mode] = _child(args, argv, mode)
-        print(f"  [{mode} subprocess finished in {time.perf_counter() - t0:.1f} s incl. imports]", flush=True)
-    b, lp = results["batched"], results["loop"]
-    yaw, tx, ty = b["truth"]
-    print(f"torch {b['torch']}, {b['threads']} threads in children; true patch index {b['true_idx']}, "
-          f"planted T_world_odom: yaw {math.degrees(yaw):.2f} deg, t ({tx:.2f}, {ty:.2f}) m")
-    print(f"same per-patch seeds in both modes: {b['same_seeds']}")
+        for tree, source in trees:  # the trees alternate, so load changes hit both alike
+            t0 = time.perf_counter()
+            results[tree, mode] = _child(args, argv, mode, source)
+            print(f"  [{tree} {mode} subprocess finished in {time.perf_counter() - t0:.1f} s incl. imports]", flush=True)
+    b = results["this tree", "batched"]
+    print(f"torch {b['torch']}, {b['threads']} threads in children; same per-patch seeds in both modes: "
+          f"{b['same_seeds']}")
     print()
-    hdr = ("mode", "time s", "CPU s", "s/patch", "peak MiB", "+peak MiB", "RSS0 MiB", "import MiB", "true ok", "best")
-    print("{:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>10} {:>7} {:>5}".format(*hdr))
-    for r in (b, lp):
-        print(
-            f"{r['mode']:>8} {r['time_s']:>8.2f} {r['cpu_s']:>8.2f} {r['time_s'] / r['n_patches']:>8.3f} "
-            f"{r['peak_after_mib']:>9.1f} "
-            f"{r['peak_after_mib'] - r['peak_before_mib']:>9.1f} {r['rss_before_mib']:>9.1f} "
-            f"{r['rss_imports_mib']:>10.1f} {str(r['true_top']['within_5m_5deg']):>7} {r['best_patch_by_objective']:>5}"
-        )
+    print("median seconds per submap against all patches (wall | process CPU), over the cases:")
+    hdr = ("tree", "batched s", "loop s", "loop/batched", "batched CPU s", "loop CPU s", "CPU ratio", "true ok",
+           "peak MiB")
+    print("{:>10} {:>10} {:>10} {:>12} {:>13} {:>10} {:>9} {:>9} {:>9}".format(*hdr))
+    for tree, _ in trees:
+        rb, rl = results[tree, "batched"], results[tree, "loop"]
+        tb, tl = _median([c["time_s"] for c in rb["cases"]]), _median([c["time_s"] for c in rl["cases"]])
+        cb, cl = _median([c["cpu_s"] for c in rb["cases"]]), _median([c["cpu_s"] for c in rl["cases"]])
+        ok = sum(c["true_top"]["within_5m_5deg"] for c in rb["cases"])
+        print(f"{tree:>10} {tb:>10.3f} {tl:>10.3f} {tl / tb:>11.2f}x {cb:>13.3f} {cl:>10.3f} {cl / cb:>8.2f}x "
+              f"{ok:>4}/{len(rb['cases']):<4} {rb['peak_after_mib']:>9.1f}")
+    if args.baseline_src:
+        new, old = results["this tree", "batched"], results["baseline", "batched"]
+        speedup = _median([c["time_s"] for c in old["cases"]]) / _median([c["time_s"] for c in new["cases"]])
+        cpu_speedup = _median([c["cpu_s"] for c in old["cases"]]) / _median([c["cpu_s"] for c in new["cases"]])
+        print(f"batched, baseline / this tree: {speedup:.2f}x wall, {cpu_speedup:.2f}x CPU")
     print(
-        "  (CPU s = the stage's process CPU time over all threads, a load-robust measure of the work; "
-        "peak = process ru_maxrss after the stage; +peak = its growth during the stage over the peak "
-        "after imports, scene and warm-up, 0 if the stage stayed below it; RSS0 = current RSS before "
-        "the stage; best = patch with the largest top-hypothesis objective)"
+        "  (true ok = cases whose true patch's top hypothesis is within 5 m / 5 deg, batched; peak = the "
+        "batched child's ru_maxrss)"
     )
-    print(f"loop / batched time ratio: {lp['time_s'] / b['time_s']:.2f}x; "
-          f"peak memory ratio batched / loop: {b['peak_after_mib'] / lp['peak_after_mib']:.2f}x")
-    if lp["per_patch_s"]:
-        pp = sorted(lp["per_patch_s"])
-        print(f"loop per-patch time: min {pp[0]:.3f} s, median {pp[len(pp) // 2]:.3f} s, max {pp[-1]:.3f} s")
-    print(f"warm-up (tiny match, excluded): batched {b['warmup_s']:.2f} s, loop {lp['warmup_s']:.2f} s")
-    for r in (b, lp):
-        print(f"{r['mode']:>8} true-patch top hypothesis: {_fmt_top(r['true_top'])}")
-        print(f"{'':>8} other patches with a top hypothesis within 5 m / 5 deg: {r['other_patches_within']}")
+    for tree, _ in trees:
+        for mode in ("batched", "loop"):
+            r = results[tree, mode]
+            other = sum(c["other_patches_within"] for c in r["cases"])
+            print(f"{tree} {mode}: first case's true patch: {_fmt_top(r['cases'][0]['true_top'])}; "
+                  f"other patches within 5 m / 5 deg over all cases: {other}; warm-up {r['warmup_s']:.2f} s")
+    print(f"load average after: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
     if args.skip_clipper:
         return
@@ -355,6 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=2, help="torch intra-op threads in every child (default 2)")
     p.add_argument("--quick", action="store_true", help="smoke run: 5 aerial patches instead of --patches")
     p.add_argument("--patches", type=int, default=25, help="number of aerial patches P (default 25)")
+    p.add_argument("--cases", type=int, default=20, help="independent scenes (seeds seed, seed + 1, ...); medians over them")
+    p.add_argument("--baseline-src", default=None,
+                   help="another source tree (its package directory's parent) benchmarked in the same run, side by side")
     p.add_argument("--particles", type=int, default=None,
                    help="Langevin particles per patch (default: the shipped config's, configs/default.yaml)")
     p.add_argument("--iterations", type=int, default=None, help="max Langevin iterations (default: shipped)")
@@ -362,10 +433,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="support pruning before sampling, 0 = off (default: shipped)")
     p.add_argument("--k-prim", type=int, default=None, help="semantic neighbours per ground primitive (default: shipped)")
     p.add_argument("--solver", choices=["particles", "clipper"], default="particles", help="inlier-set solver")
-    p.add_argument("--ground-points", type=int, default=60)
-    p.add_argument("--ground-lines", type=int, default=40)
-    p.add_argument("--aerial-points", type=int, default=90)
-    p.add_argument("--aerial-lines", type=int, default=60)
+    p.add_argument("--submaps", default=None,
+                   help="recorded cases instead of synthetic scenes: ground submaps saved by exp_registration.py --cache "
+                   "(needs --map and --sequence)")
+    p.add_argument("--map", default=None, help="with --submaps: the aerial map (.mtm)")
+    p.add_argument("--sequence", default=None, help="with --submaps: the sequence folder with groundtruth.tum")
+    # Defaults: the issue-15 case, about 20 ground and 65 aerial primitives per patch.
+    p.add_argument("--ground-points", type=int, default=8)
+    p.add_argument("--ground-lines", type=int, default=12)
+    p.add_argument("--aerial-points", type=int, default=25)
+    p.add_argument("--aerial-lines", type=int, default=40)
     p.add_argument("--radius", type=float, default=40.0, help="radius (m) of the disc of ground primitives")
     p.add_argument("--descriptor-dim", type=int, default=32)
     p.add_argument("--classes", type=int, default=8, help="descriptor class centres")
@@ -385,7 +462,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.submaps and not (args.map and args.sequence):
+        parser.error("--submaps needs --map and --sequence")
     if args.mode is None:
         orchestrate(args, argv)
         return

@@ -10,7 +10,12 @@ from hypothesis import strategies as st
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
-from meridian_torch.matching.verification import alignment_score, line_pieces, reweight_hypotheses
+from meridian_torch.matching.verification import (
+    alignment_score,
+    line_pieces,
+    reweight_hypotheses,
+    segments_near_points,
+)
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
 
@@ -179,3 +184,41 @@ def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
     for other in runs[1:]:
         torch.testing.assert_close(runs[0].probability, other.probability)
         torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
+
+
+@pytest.mark.parametrize(("radius", "dtype", "offset"), [
+    (0.4, torch.float64, 0.0), (1.5, torch.float64, -123.4), (6.0, torch.float64, 0.0), (1.5, torch.float32, 7531.7),
+])
+def test_segments_near_points_finds_every_close_pair_once(radius: float, dtype: torch.dtype, offset: float) -> None:
+    # float32 far from the origin: rounding may put a sample a cell below its patch's lowest one.
+    gen = torch.Generator().manual_seed(3)
+    ends = (torch.rand(3, 12, 2, 2, generator=gen, dtype=torch.float64) * 30 + offset).to(dtype)
+    ends[0, 1, 1] = ends[0, 1, 0]  # a degenerate segment
+    points = (torch.rand(3, 40, 2, generator=gen, dtype=torch.float64) * 36 - 3 + offset).to(dtype)
+    points[1, :12] = ends[1, :, 0] + 0.7 * radius  # points at about the radius
+    valid = torch.rand(3, 12, generator=gen) > 0.2
+    valid[2] = False  # a patch without segments
+    query, segment = segments_near_points(points, ends, valid, radius)
+    found = set(zip(query.tolist(), segment.tolist()))
+    assert len(found) == len(query)  # each pair at most once
+    n_close = 0
+    for p in range(3):  # the obvious loop: every valid segment closer than radius to a point
+        for q in range(40):
+            for m in range(12):
+                a, b = ends[p, m, 0], ends[p, m, 1]
+                t = float(((points[p, q] - a) @ (b - a)) / (b - a).square().sum().clamp_min(1e-12))
+                distance = float((a + min(max(t, 0.0), 1.0) * (b - a) - points[p, q]).norm())
+                if valid[p, m] and distance < radius * (1 - 1e-4):  # float32 slack
+                    assert (p * 40 + q, p * 12 + m) in found
+                    n_close += 1
+    assert n_close > 0
+    assert all(valid.reshape(-1)[s] and s // 12 == q // 40 for q, s in found)  # same patch, valid only
+
+
+def test_segments_near_points_where_rounding_moves_the_lowest_sample_a_cell_down() -> None:
+    # float32: (x - (x - 2.25)) / 2.25 < 1 for this lowest x, so its neighbour cells reach below
+    # one cell under it (a grid index of -1 once crashed the bincount).
+    x = -510.2839660644531
+    ends = torch.tensor([[[[x, x], [x + 10.0, x + 3.0]]]], dtype=torch.float32)
+    query, segment = segments_near_points(ends[:, :, 0], ends, torch.ones(1, 1, dtype=torch.bool), 1.5)
+    assert query.tolist() == [0] and segment.tolist() == [0]

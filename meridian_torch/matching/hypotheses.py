@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from meridian_torch.core.timing import stage
 from meridian_torch.geometry.se2 import se2_matrix, wrap_angle
 from meridian_torch.matching.associations import Associations
 from meridian_torch.matching.particles import InlierSets
@@ -173,8 +174,18 @@ def cluster_hypotheses(
     Returns:
         `Hypotheses` with L = n_hypotheses.
     """
+    with stage("registration"):
+        reg = register_sets(sets, assoc, ground, aerial, registration)
+    with stage("clustering"):
+        return _cluster(sets, reg, assoc, n_hypotheses, translation_m, rotation_deg)
+
+
+def _cluster(
+    sets: InlierSets, reg: RegistrationResult, assoc: Associations, n_hypotheses: int, translation_m: float,
+    rotation_deg: float,
+) -> Hypotheses:
+    """`cluster_hypotheses` after the registration."""
     n_patches, n_sets, m = sets.masks.shape
-    reg = register_sets(sets, assoc, ground, aerial, registration)
     ok = reg.valid
     dt = (reg.t[:, :, None, :] - reg.t[:, None, :, :]).norm(dim=-1)
     dtheta = wrap_angle(reg.theta[:, :, None] - reg.theta[:, None, :]).abs()

@@ -19,11 +19,17 @@ from meridian_torch.matching.associations import Associations, putative_associat
 from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.config import MatchConfig
 from meridian_torch.matching.hypotheses import Hypotheses, cluster_hypotheses
-from meridian_torch.matching.particles import InlierSets, patch_seeds, sample_inlier_sets
+from meridian_torch.matching.particles import InlierSets, concat_problems, patch_seeds, sample_problem, sampler_problem
 from meridian_torch.matching.verification import reweight_hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet, stack_primitive_sets
 
 __all__ = ["match_submap", "match_arrays"]
+
+# Floats per sampler state buffer (patches x associations x particles) sampled together: 8 MiB
+# each at float32 (the dynamics keep about five), so peak memory stays bounded on any map.
+_SAMPLER_ELEMENTS = 1 << 21
+# (patch, set, set) entries clustered together; a few such tensors live at once.
+_CLUSTER_ELEMENTS = 1 << 21
 
 
 def _clipper_sets(M: Tensor, valid: Tensor, config: MatchConfig, generator: torch.Generator | None) -> InlierSets:
@@ -115,6 +121,41 @@ def _concat_hypotheses(parts: list[Hypotheses]) -> Hypotheses:
     return Hypotheses(**{name: torch.cat([getattr(h, name) for h in parts]) for name in names})
 
 
+def _sample_chunks(
+    ground: PrimitiveSet, aerial: PrimitiveBatch, assoc: Associations, prior: Tensor | None, order: Tensor,
+    seeds: Tensor, cfg: MatchConfig,
+) -> InlierSets:
+    """Inlier sets of the patches `order` (seeds in that order): affinities a patch chunk at a
+    time (memory), then the small pruned problems of many chunks sampled in one batch, which
+    halves the per-step overhead of a match; a batch stays under _SAMPLER_ELEMENTS floats."""
+    sampled, pending, elements = [], [], 0
+
+    def flush() -> None:
+        problem = concat_problems([p for _, p in pending])
+        part = torch.cat([q for q, _ in pending])
+        with stage("particles"):
+            sampled.append(sample_problem(problem, cfg.particles, seeds[part]))
+        pending.clear()
+
+    for c0 in range(0, len(aerial), cfg.patch_chunk):
+        part = order[c0 : c0 + cfg.patch_chunk]
+        assoc_c, aerial_c = _patch_chunk(assoc, aerial, part)
+        with stage("affinity"):
+            M = affinity_entries(ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part])
+        with stage("pruning"):
+            problem = sampler_problem(M, assoc_c.valid, assoc_c.pairs, cfg.particles)
+        del M
+        size = problem.entries.valid.numel() * cfg.particles.n_particles
+        if pending and elements + size > _SAMPLER_ELEMENTS:
+            flush()
+            elements = 0
+        pending.append((torch.arange(c0, c0 + len(part), device=order.device), problem))
+        elements += size
+    if pending:
+        flush()
+    return _concat_sets(sampled)
+
+
 @torch.no_grad()
 def match_submap(
     ground: PrimitiveSet,
@@ -164,37 +205,25 @@ def match_submap(
         # only to patches like its own.
         seeds = patch_seeds(len(aerial), generator)
         by_size = torch.argsort(aerial.used_lengths()[1], descending=True, stable=True)
-        chunks = []
-        for c0 in range(0, len(aerial), cfg.patch_chunk):
-            part = by_size[c0 : c0 + cfg.patch_chunk]
-            assoc_c, aerial_c = _patch_chunk(assoc, aerial, part)
-            with stage("affinity"):
-                M = affinity_entries(
-                    ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part]
-                )
-            with stage("particles"):
-                chunks.append(sample_inlier_sets(M, assoc_c.valid, assoc_c.pairs, cfg.particles, seeds=seeds[part]))
-            del M
-        sets = _take_patches(_concat_sets(chunks), torch.argsort(by_size))
+        sets = _take_patches(_sample_chunks(ground, aerial, assoc, prior, by_size, seeds[by_size], cfg), torch.argsort(by_size))
     verify = cfg.verification
     n_clustered = max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch
-    # Clustering compares every pair of a patch's sets, (P, S, S): a patch chunk at a time, so
+    # Clustering compares every pair of a patch's sets, (P, S, S): a group of patches at a time, so
     # that its peak memory does not grow with the number of patches (609 patches: 2.1 -> 1.1 GB).
-    parts = torch.arange(len(aerial), device=sets.masks.device).split(cfg.patch_chunk)
-    with stage("registration and clustering"):
-        hypotheses = _concat_hypotheses([
-            cluster_hypotheses(
-                _take_patches(sets, part),
-                _select_associations(assoc, part),
-                ground,
-                aerial.select(part),
-                n_hypotheses=n_clustered,
-                translation_m=cfg.cluster_translation_m,
-                rotation_deg=cfg.cluster_rotation_deg,
-                registration=cfg.registration,
-            )
-            for part in parts
-        ])
+    group = max(1, _CLUSTER_ELEMENTS // max(int(sets.masks.shape[1]) ** 2, 1))
+    hypotheses = _concat_hypotheses([
+        cluster_hypotheses(
+            _take_patches(sets, part),
+            _select_associations(assoc, part),
+            ground,
+            aerial.select(part),
+            n_hypotheses=n_clustered,
+            translation_m=cfg.cluster_translation_m,
+            rotation_deg=cfg.cluster_rotation_deg,
+            registration=cfg.registration,
+        )
+        for part in torch.arange(len(aerial), device=sets.masks.device).split(group)
+    ])
     if not verify.enabled:
         return hypotheses
     with stage("verification"):

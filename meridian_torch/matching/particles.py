@@ -19,8 +19,13 @@ Randomness is counter based: a 64-bit mix (splitmix64 finaliser) of (patch seed,
 particle, association index). The per-patch seeds are drawn from the caller's generator, so
 one seed gives identical runs, and a patch's trajectory depends on nothing but its own seed and
 data (not on the other patches in the batch, their early stopping or the padded width m). The
-Gaussian noise is the Irwin-Hall sum of four 16-bit uniforms, rescaled to unit variance: a
-bounded (|xi| < 3.47) but otherwise close stand-in, which is all the annealed Langevin noise needs.
+Gaussian noise of one step is a slab of a fixed table of standard normals (made once per
+process) read from a random offset per patch, entry (i, n) for coordinate i and particle n,
+with a random sign per particle: hashing every entry would cost as much as the drift.
+
+Cost: every step is in place on the (P, m, N) buffers (allocating them cost more than the
+arithmetic), and `match_submap` samples the pruned problems of all its patch chunks together
+(`concat_problems`), so the per-step overhead is paid once per match, not once per chunk.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
@@ -29,13 +34,19 @@ particle counts summed, and the sets are ranked by J(S) = 1_S' M 1_S / |S| (unpe
 
 Pruning: before sampling, each patch keeps its `max_associations` best supported associations
 (`support_pruning`, two-step walk counts on the affinity graph); masks are reported over all m.
-Particles x iterations on a CPU: the `ParticleConfig` defaults (32 x 100 on 128 associations)
-and the measurement behind them are in its field descriptions. Early stopping rarely fires
-before T because the annealed noise keeps the objective moving.
+Particles x iterations on a CPU: the `ParticleConfig` defaults and the measurement behind them
+are in its field descriptions. Early stopping rarely fires before T, and fewer steps are no
+cure: the preconditioner's first average is the huge penalty gradient of the dense random
+start (|g| ~ 10^4 against ~10^2 later), so the effective step grows from ~0.02 to ~1 only over
+the whole schedule (the mean objective turns positive only after ~40 of 100 steps). Measured on the KITTI
+00 / 09 worlds' rendered submaps (each against its true patch): 50 steps (also with alpha =
+0.81, the same schedule compressed) lost 15-26 points of known-rotation top-25 success, a
+preconditioner restarted after the first step found nothing.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -44,19 +55,23 @@ from torch import Tensor
 
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.config import ParticleConfig
+from meridian_torch.matching.particle_noise import (
+    ROW,
+    mix,
+    noise_slabs,
+    patch_seeds,
+    row_words,
+    slab_table,
+    uniform,
+)
 
-__all__ = ["InlierSets", "sample_inlier_sets", "patch_seeds", "support_pruning"]
+__all__ = [
+    "InlierSets", "SamplerProblem", "sample_inlier_sets", "sampler_problem", "concat_problems", "sample_problem",
+    "patch_seeds", "support_pruning",
+]
 
-# splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
-_MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
-_MIX_2 = 0x94D049BB133111EB - (1 << 64)
-_GOLDEN = 0x9E3779B97F4A7C15 - (1 << 64)
-_ROW = 0xD1B54A32D192ED03 - (1 << 64)
-# Fixed seeds (independent of the caller's generator) of the set-hash weights and of the noise
-# table; the table is long enough that two particles' windows rarely overlap.
+# Fixed seed (independent of the caller's generator) of the set-hash weights.
 _SET_HASH_SEED = 0x5E7
-_TABLE_SEED = 0x7AB1E
-_TABLE_SIZE = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -80,53 +95,22 @@ class InlierSets:
     n_particles: int
 
 
-def _srl(z: Tensor, shift: int) -> Tensor:
-    """Logical right shift of int64 (torch's >> is arithmetic)."""
-    return (z >> shift) & ((1 << (64 - shift)) - 1)
+@dataclass(frozen=True)
+class SamplerProblem:
+    """What the sampler runs on for P patches: their affinities over k <= m associations (all m,
+    or the best supported k of `support_pruning`) and where those sit among the m.
 
+    Attributes:
+        entries: (P, k, k) affinity as `AffinityEntries` (unit diagonal on entries.valid).
+        pairs: (P, k, 2) int64 (ground index, aerial index) of each association (-1 on padding).
+        index: (P, k) int64 position among the m associations (m on padding).
+        m: the length of the association axis the sets are reported over.
+    """
 
-def _mix(z: Tensor) -> Tensor:
-    """splitmix64 finaliser on int64 tensors: a bijective, well-avalanched 64-bit hash."""
-    z = (z ^ _srl(z, 30)) * _MIX_1
-    z = (z ^ _srl(z, 27)) * _MIX_2
-    return z ^ _srl(z, 31)
-
-
-def _wrap64(value: int) -> int:
-    """A Python int reduced to the signed int64 range (two's complement)."""
-    return (value + (1 << 63)) % (1 << 64) - (1 << 63)
-
-
-def _row_words(seeds: Tensor, step: int, n_particles: int) -> Tensor:
-    """(P,) seeds -> (P, N) int64 random words of iteration `step` (one per particle)."""
-    base = _mix(seeds + _wrap64((step + 2) * _GOLDEN))
-    return _mix(base[:, None] + torch.arange(n_particles, device=seeds.device) * _ROW)
-
-
-def _uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
-    """int64 words -> U[0, 1) from their top 53 bits."""
-    return (_srl(z, 11).to(torch.float64) * 2.0**-53).to(dtype)
-
-
-def _noise_table(m: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """A fixed table of _TABLE_SIZE + m standard normals (seeded once, independent of the caller)."""
-    gen = torch.Generator(device="cpu").manual_seed(_TABLE_SEED)
-    return torch.randn(_TABLE_SIZE + m, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
-
-
-def _normal(table: Tensor, words: Tensor, m: int) -> Tensor:
-    """(P, N) words -> (P, m, N) noise: each particle reads m consecutive table entries from a
-    random offset with a random sign. Hashing every entry would cost as much as the drift."""
-    offset = _srl(words, 1) % _TABLE_SIZE
-    sign = 1.0 - 2.0 * (words & 1).to(table.dtype)
-    # Rows of the (TABLE_SIZE, m) sliding-window view are contiguous copies (no index tensor).
-    windows = table.unfold(0, m, 1).index_select(0, offset.flatten()).view(*offset.shape, m)
-    return (windows * sign[..., None]).transpose(1, 2)
-
-
-def patch_seeds(n_patches: int, generator: torch.Generator) -> Tensor:
-    """(P,) int64 per-patch seeds drawn from `generator` (the only use of the generator)."""
-    return torch.randint(0, 1 << 62, (n_patches,), generator=generator, device=generator.device)
+    entries: AffinityEntries
+    pairs: Tensor
+    index: Tensor
+    m: int
 
 
 class _BlockOperator:
@@ -189,32 +173,34 @@ def _penalised(M: Tensor, d: Tensor) -> Tensor:
 
 def _drift(A: _BlockOperator, d: Tensor, validf: Tensor, x: Tensor) -> Tensor:
     """g = M_d x for x (P, m, N); zero on padded coordinates."""
-    return A(x) - (d[:, None, None] * x.sum(1, keepdim=True)) * validf[:, :, None]
+    return A(x).addcmul_(validf[:, :, None], d[:, None, None] * x.sum(1, keepdim=True), value=-1.0)
 
 
 @torch.no_grad()
 def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor) -> tuple[Tensor, Tensor]:
-    """Langevin loop for all patches (A is consumed); returns final x (P, m, N) and iterations (P,)."""
+    """Langevin loop for all patches (A is consumed); returns final x (P, m, N) and iterations (P,).
+
+    Every step works in place on (P, m, N) buffers: allocating them cost more than the arithmetic."""
     n_patches, m = valid.shape
     n_particles, T = cfg.n_particles, cfg.n_iterations
     dtype, device = d.dtype, d.device
     validf = valid.to(dtype)
-    table = _noise_table(m, dtype, device)
-    coord_keys = _mix(torch.arange(m, device=device, dtype=torch.int64) + _ROW)
+    slabs = slab_table(m * n_particles, dtype, device) if cfg.noise else None
+    coord_keys = mix(torch.arange(m, device=device, dtype=torch.int64) + ROW)
 
-    init_words = _mix(_row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
-    x_out = _uniform(init_words, dtype) * validf[:, :, None]
+    init_words = mix(row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
+    x_out = uniform(init_words, dtype) * validf[:, :, None]
     iterations = torch.full((n_patches,), T, dtype=torch.int64, device=device)
     # Working batch: the patches still running (indices into the full batch).
     active = torch.arange(n_patches, device=device)
-    d_act, v_act, x, seeds_act = d, validf, x_out.clone(), seeds
+    d_act, v_act, x, seeds_act = d, validf[:, :, None], x_out.clone(), seeds
     h = torch.zeros_like(x)
     ema = torch.zeros(n_patches, dtype=dtype, device=device)
     settled = torch.zeros(n_patches, dtype=torch.int64, device=device)
     sqrt_eta = cfg.step_size**0.5
 
     for t in range(T):
-        g = _drift(A, d_act, v_act, x)
+        g = _drift(A, d_act, v_act[..., 0], x)
         if cfg.early_stop and t > 0 and t % cfg.check_interval == 0:
             objective = (g * x).sum(1).mean(-1)
             if t == cfg.check_interval:
@@ -237,14 +223,22 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
                     break
                 A.keep(keep)
                 d_act, v_act, seeds_act = d_act[keep], v_act[keep], seeds_act[keep]
-        if cfg.noise:
+        if slabs is not None:
             sigma = sqrt_eta * (1.0 - t / (T - 1)) if cfg.anneal else sqrt_eta
-            g = g + sigma * _normal(table, _row_words(seeds_act, t, n_particles), m)
+            words = row_words(seeds_act, t, n_particles)
+            # A random sign per particle: two patches' slabs that overlap in the table still differ.
+            signed_sigma = (sigma * (1.0 - 2.0 * (words & 1).to(dtype)))[:, None, :]
+            g.addcmul_(noise_slabs(slabs, words, m), signed_sigma)
         if cfg.rmsprop:
-            h = g.square() if t == 0 else cfg.alpha * h + (1.0 - cfg.alpha) * g.square()
-            g = g / (h.sqrt() + 1e-6)
-        x = (x + cfg.step_size * g).clamp_min(0.0) * v_act[:, :, None]
-        x = x / torch.linalg.vector_norm(x, dim=1, keepdim=True).clamp_min(1e-6)
+            if t == 0:
+                h = g.square()
+            else:
+                h.mul_(cfg.alpha).addcmul_(g, g, value=1.0 - cfg.alpha)
+            x.addcdiv_(g, h.sqrt().add_(1e-6), value=cfg.step_size)
+        else:
+            x.add_(g, alpha=cfg.step_size)
+        x.clamp_min_(0.0).mul_(v_act)
+        x.div_((x * x).sum(1, keepdim=True).sqrt_().clamp_min_(1e-6))
     x_out[active] = x
     return x_out, iterations
 
@@ -280,13 +274,22 @@ def support_pruning(
         k' = min(k, m). Kept associations stay in their original order, so a patch's result does
         not depend on the others.
     """
+    kept = _prune(M, valid, pairs, k)
+    return kept.entries.to_sparse(), kept.entries.valid, kept.pairs, kept.index
+
+
+def _upper_entries(M: Tensor, valid: Tensor) -> AffinityEntries:
+    """The strict upper triangle of a dense or sparse COO (P, m, m) affinity as `AffinityEntries`."""
+    M = (M if M.is_sparse else M.to_sparse()).coalesce()
+    upper = M.indices()[1] < M.indices()[2]
+    return AffinityEntries(M.indices()[:, upper].T, M.values()[upper], valid)
+
+
+def _prune(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int) -> SamplerProblem:
+    """`support_pruning` as a `SamplerProblem` (the kept entries without their diagonal)."""
     n_patches, m = valid.shape
-    if isinstance(M, AffinityEntries):
-        (b, i, j), value = M.index.T, M.value
-    else:
-        M = (M if M.is_sparse else M.to_sparse()).coalesce()
-        upper = M.indices()[1] < M.indices()[2]
-        (b, i, j), value = M.indices()[:, upper], M.values()[upper]
+    entries = M if isinstance(M, AffinityEntries) else _upper_entries(M, valid)
+    (b, i, j), value = entries.index.T, entries.value
     validf = valid.to(value.dtype)
 
     def times(x: Tensor) -> Tensor:  # M' x for x (P, m), from the upper-triangle entries
@@ -309,7 +312,7 @@ def support_pruning(
     use = (ni >= 0) & (nj >= 0)
     kept = AffinityEntries(torch.stack([b[use], ni[use], nj[use]], 1), value[use], kept_valid)
     pairs_kept = torch.cat([pairs, pairs.new_full((n_patches, 1, 2), -1)], 1).gather(1, index[..., None].expand(-1, -1, 2))
-    return kept.to_sparse(), kept_valid, pairs_kept, index
+    return SamplerProblem(kept, pairs_kept, index, m)
 
 
 def _one_to_one(masks: Tensor, pairs: Tensor) -> Tensor:
@@ -349,6 +352,52 @@ def _merge(masks: Tensor, keep: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return order, first, counts
 
 
+def sampler_problem(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, cfg: ParticleConfig) -> SamplerProblem:
+    """The problem `sample_inlier_sets` samples: pruned to `cfg.max_associations` when set and
+    smaller than m, else all m associations (arguments as there)."""
+    n_patches, m = valid.shape
+    if tuple(M.shape) != (n_patches, m, m) or tuple(pairs.shape) != (n_patches, m, 2):
+        raise ValueError(f"expected M (P, m, m) and pairs (P, m, 2) for valid {tuple(valid.shape)}, "
+                         f"got {tuple(M.shape)} and {tuple(pairs.shape)}")
+    if cfg.max_associations is not None and cfg.max_associations < m:
+        return _prune(M, valid, pairs, cfg.max_associations)
+    entries = M if isinstance(M, AffinityEntries) else _upper_entries(M, valid)
+    index = torch.arange(m, device=valid.device).expand(n_patches, m).masked_fill(~valid, m)
+    return SamplerProblem(entries, pairs, index, m)
+
+
+def concat_problems(problems: list[SamplerProblem]) -> SamplerProblem:
+    """Problems of consecutive patch groups (same m) as one batch, padded to the largest k;
+    padding changes no patch's result (see the module docstring)."""
+    if len(problems) == 1:
+        return problems[0]
+    m = problems[0].m
+    if any(p.m != m for p in problems):
+        raise ValueError(f"problems over different association axes: m = {sorted({p.m for p in problems})}")
+    k = max(p.entries.valid.shape[1] for p in problems)
+    offsets = torch.tensor([0] + [len(p.entries.valid) for p in problems]).cumsum(0).tolist()
+
+    def pad(x: Tensor, value: int | bool) -> Tensor:
+        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, k - x.shape[1]), value=value)
+
+    index = torch.cat([p.entries.index + p.entries.index.new_tensor([offset, 0, 0])
+                       for p, offset in zip(problems, offsets)])
+    entries = AffinityEntries(index, torch.cat([p.entries.value for p in problems]),
+                              torch.cat([pad(p.entries.valid, False) for p in problems]))
+    return SamplerProblem(entries, torch.cat([pad(p.pairs, -1) for p in problems]),
+                          torch.cat([pad(p.index, m) for p in problems]), m)
+
+
+@torch.no_grad()
+def sample_problem(problem: SamplerProblem, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:
+    """Inlier sets of a `SamplerProblem` with per-patch seeds (P,), masks over its m associations."""
+    valid = problem.entries.valid
+    kept = _sample(problem.entries.to_sparse(), valid, problem.pairs, cfg, seeds.to(device=valid.device, dtype=torch.int64))
+    masks = torch.zeros(kept.masks.shape[:2] + (problem.m + 1,), dtype=torch.bool, device=valid.device)
+    masks.scatter_(2, problem.index[:, None, :].expand_as(kept.masks), kept.masks)
+    return dataclasses.replace(kept, masks=masks[..., : problem.m])
+
+
 @torch.no_grad()
 def sample_inlier_sets(
     M: Tensor | AffinityEntries,
@@ -378,24 +427,12 @@ def sample_inlier_sets(
         `InlierSets` with S = the largest number of unique accepted sets over the patches.
     """
     cfg = cfg or ParticleConfig()
-    n_patches, m = valid.shape
-    if tuple(M.shape) != (n_patches, m, m) or tuple(pairs.shape) != (n_patches, m, 2):
-        raise ValueError(f"expected M (P, m, m) and pairs (P, m, 2) for valid {tuple(valid.shape)}, "
-                         f"got {tuple(M.shape)} and {tuple(pairs.shape)}")
-    device = valid.device
+    problem = sampler_problem(M, valid, pairs, cfg)
     if seeds is None:
         if generator is None:
-            generator = torch.Generator(device=device).manual_seed(cfg.seed)
-        seeds = patch_seeds(n_patches, generator).to(device)
-    if cfg.max_associations is not None and cfg.max_associations < m:
-        M, valid, pairs, index = support_pruning(M, valid, pairs, cfg.max_associations)
-        kept = _sample(M, valid, pairs, cfg, seeds.to(device=device, dtype=torch.int64))
-        masks = torch.zeros(kept.masks.shape[:2] + (m + 1,), dtype=torch.bool, device=device)
-        masks.scatter_(2, index[:, None, :].expand_as(kept.masks), kept.masks)
-        return InlierSets(masks[..., :m], kept.counts, kept.objective, kept.valid, kept.iterations, kept.n_particles)
-    if isinstance(M, AffinityEntries):
-        M = M.to_sparse()
-    return _sample(M, valid, pairs, cfg, seeds.to(device=device, dtype=torch.int64))
+            generator = torch.Generator(device=valid.device).manual_seed(cfg.seed)
+        seeds = patch_seeds(len(valid), generator)
+    return sample_problem(problem, cfg, seeds)
 
 
 def _sample(M: Tensor, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:

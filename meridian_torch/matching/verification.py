@@ -28,7 +28,7 @@ from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["alignment_score", "line_pieces", "reweight_hypotheses"]
+__all__ = ["alignment_score", "line_pieces", "reweight_hypotheses", "segments_near_points"]
 
 
 def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
@@ -52,6 +52,52 @@ def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
     return torch.stack([a + f0 * (b - a), a + f1 * (b - a)], 1)
 
 
+def segments_near_points(points: Tensor, ends: Tensor, valid: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Pairs of a point points[p, q] (P, Q, 2) and a valid segment ends[p, m] (P, M, 2, 2) of
+    the same patch as flat indices (p Q + q, p M + m): every pair closer than `radius`, and
+    some farther ones. A grid of radius / 2 apart samples along every segment, each registered
+    in the 3 x 3 cells of 1.5 radius around its own; a point takes its cell's segments.
+    Exhaustive because a point within radius of a segment is within 1.25 radius of a sample,
+    less than one cell (verification's cost on real patches was the (pose, piece, aerial line)
+    product, of which a few per cent lie that close)."""
+    n_patches, n_points = points.shape[:2]
+    n_segments = ends.shape[1]
+    cell, spacing = 1.5 * radius, 0.5 * radius
+    a, b = ends[..., 0, :].reshape(-1, 2), ends[..., 1, :].reshape(-1, 2)
+    n_samples = (torch.ceil((b - a).norm(dim=-1) / spacing).long() + 1) * valid.reshape(-1)
+    segment = torch.repeat_interleave(torch.arange(len(a), device=a.device), n_samples)
+    step = torch.arange(len(segment), device=a.device) - (torch.cumsum(n_samples, 0) - n_samples)[segment]
+    f = (step / (n_samples[segment] - 1).clamp_min(1)).to(a.dtype)[:, None]
+    samples = a[segment] + f * (b[segment] - a[segment])
+    patch = segment // max(n_segments, 1)
+    # Per patch grid from two cells below its lowest sample: every neighbour cell index is >= 0
+    # even where rounding puts a sample one cell lower.
+    origin = torch.full((n_patches, 2), math.inf, dtype=a.dtype, device=a.device)
+    origin = origin.scatter_reduce(0, patch[:, None].expand(-1, 2), samples, "amin") - 2 * cell
+    ij = torch.floor((samples - origin[patch]) / cell).long()
+    size = ij.amax(0) + 2 if len(ij) else torch.ones(2, dtype=torch.long, device=a.device)
+    width, height = int(size[0]), int(size[1])
+    offsets = torch.tensor([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=a.device)
+    cells = ij[:, None, :] + offsets  # (samples, 9, 2)
+    key = (patch[:, None] * height + cells[..., 1]) * width + cells[..., 0]
+    n_keys = n_patches * height * width
+    # unique: one entry per (cell, segment), cells ascending.
+    entry = torch.unique(key * len(a) + segment[:, None])
+    entry_segment, entry_key = entry % max(len(a), 1), entry // max(len(a), 1)
+    counts = torch.bincount(entry_key, minlength=n_keys)
+    starts = torch.cumsum(counts, 0) - counts
+    # Each point's cell (points of patches without segments, or outside the grid, take none).
+    q_patch = torch.arange(n_patches, device=a.device).repeat_interleave(n_points)
+    q_ij = torch.floor((points.reshape(-1, 2) - origin[q_patch]) / cell)
+    inside = torch.isfinite(q_ij).all(-1) & (q_ij >= 0).all(-1) & (q_ij[:, 0] < width) & (q_ij[:, 1] < height)
+    q_ij = torch.where(inside[:, None], q_ij, 0).long()
+    q_key = (q_patch * height + q_ij[:, 1]) * width + q_ij[:, 0]
+    q_count = counts[q_key] * inside
+    query = torch.repeat_interleave(torch.arange(len(q_key), device=a.device), q_count)
+    position = torch.arange(len(query), device=a.device) + (starts[q_key] - torch.cumsum(q_count, 0) + q_count)[query]
+    return query, entry_segment[position]
+
+
 def alignment_score(
     T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
 ) -> Tensor:
@@ -67,7 +113,6 @@ def alignment_score(
     ground = ground.to(device=device, dtype=dtype)
     R, t = T_world_odom[..., :2, :2], T_world_odom[..., :2, 2]
     score = T_world_odom.new_zeros(T_world_odom.shape[:2])
-    cos_min = math.cos(math.radians(config.line_angle_deg))
     if len(ground.line_endpoints) and aerial.line_endpoints.shape[1]:
         pieces = line_pieces(ground.line_endpoints, config.line_piece_m)
         d = pieces[:, 1] - pieces[:, 0]  # (N, 2)
@@ -78,16 +123,15 @@ def alignment_score(
         A = aerial.line_endpoints.to(dtype)  # (P, M, 2, 2)
         ad = A[:, :, 1] - A[:, :, 0]
         au = ad / ad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        parallel = torch.einsum("phnk,pmk->phnm", u_world, au).abs() >= cos_min
-        parallel &= aerial.line_valid[:, None, None, :]
-        # Distances only for the near-parallel triples (a small share): index them instead of
-        # broadcasting (P, H, N, M, 2) temporaries.
-        p_i, h_i, n_i, m_i = parallel.nonzero(as_tuple=True)
-        d2 = _squared_segment_distance(mid[p_i, h_i, n_i], A[p_i, m_i, 0], A[p_i, m_i, 1])
+        # Only aerial lines closer than line_distance_m score; of those the near-parallel ones.
+        piece, line = segments_near_points(mid.flatten(1, 2), A, aerial.line_valid, config.line_distance_m)
+        u_piece, u_line = u_world.reshape(-1, 2).index_select(0, piece), au.reshape(-1, 2).index_select(0, line)
+        parallel = (u_piece * u_line).sum(-1).abs() >= math.cos(math.radians(config.line_angle_deg))
+        piece, line = piece[parallel], line[parallel]
+        ends = A.reshape(-1, 4).index_select(0, line)
+        d2 = _squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
         closeness = (1.0 - d2 / config.line_distance_m**2).clamp_min(0.0)
-        P_, H_, N_ = parallel.shape[:3]
-        key = (p_i * H_ + h_i) * N_ + n_i
-        on_line = closeness.new_zeros(P_ * H_ * N_).scatter_reduce(0, key, closeness, "amax").reshape(P_, H_, N_)
+        on_line = closeness.new_zeros(mid.shape[:3].numel()).scatter_reduce(0, piece, closeness, "amax").view(mid.shape[:3])
         score = score + (on_line * length).sum(-1)
     if len(ground.points_xy) and aerial.points_xy.shape[1]:
         p = torch.einsum("phij,nj->phni", R, ground.points_xy) + t[:, :, None]  # (P, H, N, 2)

@@ -1,0 +1,82 @@
+"""Counter-based randomness of the particle sampler: splitmix64 words per (patch seed, step,
+particle, coordinate) and a fixed table of standard normals read in per-patch slabs, so that a
+patch's draws depend only on its own seed, never on the batch it travels in or its padding."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from torch import Tensor
+
+__all__ = ["ROW", "mix", "noise_slabs", "patch_seeds", "row_words", "slab_table", "uniform"]
+
+# splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
+_MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
+_MIX_2 = 0x94D049BB133111EB - (1 << 64)
+_GOLDEN = 0x9E3779B97F4A7C15 - (1 << 64)
+ROW = 0xD1B54A32D192ED03 - (1 << 64)
+# Fixed seed (independent of the caller's generator) of the noise table; the table is long
+# enough that two patches' slabs rarely overlap.
+_TABLE_SEED = 0x7AB1E
+_TABLE_SIZE = 1 << 20
+
+
+def srl(z: Tensor, shift: int) -> Tensor:
+    """Logical right shift of int64 (torch's >> is arithmetic)."""
+    return (z >> shift) & ((1 << (64 - shift)) - 1)
+
+
+def mix(z: Tensor) -> Tensor:
+    """splitmix64 finaliser on int64 tensors: a bijective, well-avalanched 64-bit hash."""
+    z = (z ^ srl(z, 30)) * _MIX_1
+    z = (z ^ srl(z, 27)) * _MIX_2
+    return z ^ srl(z, 31)
+
+
+def wrap64(value: int) -> int:
+    """A Python int reduced to the signed int64 range (two's complement)."""
+    return (value + (1 << 63)) % (1 << 64) - (1 << 63)
+
+
+def row_words(seeds: Tensor, step: int, n_particles: int) -> Tensor:
+    """(P,) seeds -> (P, N) int64 random words of iteration `step` (one per particle)."""
+    base = mix(seeds + wrap64((step + 2) * _GOLDEN))
+    return mix(base[:, None] + torch.arange(n_particles, device=seeds.device) * ROW)
+
+
+def uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
+    """int64 words -> U[0, 1) from their top 53 bits."""
+    return (srl(z, 11).to(torch.float64) * 2.0**-53).to(dtype)
+
+
+@functools.lru_cache(maxsize=4)
+def noise_table(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """_TABLE_SIZE fixed standard normals (seeded once, independent of the caller) followed by
+    their first _TABLE_SIZE - 1 again, so that every window of up to _TABLE_SIZE entries can be
+    read circularly from any offset. Made once per process: drawing it took a tenth of a match."""
+    gen = torch.Generator(device="cpu").manual_seed(_TABLE_SEED)
+    table = torch.randn(_TABLE_SIZE, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+    return torch.cat([table, table[:-1]])
+
+
+def slab_table(width: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(_TABLE_SIZE, width) view of the circular noise table: row r = entries r .. r + width - 1."""
+    table = noise_table(dtype, device)
+    if width > _TABLE_SIZE:
+        table = table[:_TABLE_SIZE].repeat(2 + width // _TABLE_SIZE)
+    return table[: _TABLE_SIZE + width - 1].unfold(0, width, 1)
+
+
+def noise_slabs(slabs: Tensor, words: Tensor, m: int) -> Tensor:
+    """(P, N) words of one step -> (P, m, N) standard normals: patch p reads m x N consecutive
+    table entries (coordinate i, particle n at i N + n, so a coordinate sees the same numbers
+    whatever the padded width m) from an offset taken from its first particle's word. Hashing
+    every entry would cost as much as the drift."""
+    offset = srl(words[:, 0], 1) % _TABLE_SIZE
+    return slabs.index_select(0, offset).view(len(offset), m, words.shape[1])
+
+
+def patch_seeds(n_patches: int, generator: torch.Generator) -> Tensor:
+    """(P,) int64 per-patch seeds drawn from `generator` (the only use of the generator)."""
+    return torch.randint(0, 1 << 62, (n_patches,), generator=generator, device=generator.device)
