@@ -105,8 +105,8 @@ class ReplayedSequence:
     def ortho(self):
         return self.reader.ortho()
 
-    def require_odometry_without_gaps(self, max_gap_s: float) -> None:
-        """The replay shows recorded poses only: the recording's gaps are its gaps."""
+    def require_odometry_without_gaps(self, max_gap_s: float, n_frames: int | None = None) -> None:
+        """The replay shows recorded poses only: the recording's gaps are its gaps (all checked)."""
         self.reader.require_odometry_without_gaps(max_gap_s)
 
 
@@ -236,6 +236,9 @@ class _FirstFrames:
 
     def ortho(self):
         return self.source.ortho()
+
+    def require_odometry_without_gaps(self, max_gap_s: float, n_frames: int | None = None) -> None:
+        self.source.require_odometry_without_gaps(max_gap_s, self.n if n_frames is None else min(n_frames, self.n))
 
 
 def _with_stages(record_stages, fn):
