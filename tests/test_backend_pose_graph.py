@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import select_inliers
-from meridian_torch.backend.pose_graph import align_odometry, optimize_pose_graph
+from meridian_torch.backend.pose_graph import align_odometry, optimize_pose_graph, propagate_covariance
 from meridian_torch.config import BackendConfig
 
 
@@ -65,6 +68,26 @@ def test_covariance_is_in_world_axes() -> None:
     far = sol.covariance[-1]
     assert far[0, 0] > 5 * far[1, 1]
     assert sol.covariance[0, 0, 0] == pytest.approx(4.0, rel=1e-3)  # the prior's 2 m sigma
+
+
+@settings(max_examples=10, deadline=None)
+@given(turn_deg=st.floats(-3.0, 3.0), start=st.integers(0, 30))
+def test_propagated_covariance_is_the_marginal_of_a_chain(turn_deg: float, start: int) -> None:
+    """On a chain with one prior (a tree: linear-Gaussian propagation is exact to first order),
+    carrying node `start`'s marginal along the odometry gives the marginal at the end."""
+    n = 60
+    yaw = np.radians(turn_deg) * np.arange(n)
+    steps = se2(np.ones(n), np.zeros(n), np.radians(turn_deg) * np.ones(n))
+    odom = np.stack(list(itertools.accumulate(steps[:-1], lambda T, s: T @ s, initial=np.eye(3))))
+    assert np.allclose(np.arctan2(odom[:, 1, 0], odom[:, 0, 0]), np.angle(np.exp(1j * yaw)))
+    cfg = BackendConfig(odom_rot_sigma_deg=0.5)
+    sol = optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance=True)
+    got = propagate_covariance(sol.covariance[start], sol.T_world_base[start:], cfg)
+    np.testing.assert_allclose(got, sol.covariance[-1], rtol=1e-3, atol=1e-6)
+    assert optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance="last").covariance.shape == (1, 3, 3)
+    np.testing.assert_allclose(
+        optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance="last").covariance[0], sol.covariance[-1]
+    )
 
 
 def test_corrupted_loop_closure_is_rejected() -> None:

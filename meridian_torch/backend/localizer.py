@@ -39,7 +39,7 @@ import torch
 
 from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses, se2_from_se3
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
-from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph
+from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph, propagate_covariance
 from meridian_torch.backend.sanity import sanity_problems
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
@@ -132,6 +132,43 @@ def lift_se2(T_world_base_se2: np.ndarray, T_odom_base: np.ndarray) -> np.ndarra
 class _Update:
     available_time: float
     T_world_odom: np.ndarray  # (3, 3) anchor: last optimized pose * its odometry pose^-1
+    node: int  # the frame the anchor was optimized at
+    covariance: np.ndarray | None  # (3, 3) marginal covariance of that frame's (x, y, yaw), world axes
+
+
+class _FrameBuffer:
+    """Frame times and odometry poses that grow as frames arrive (capacity doubles, so a long
+    drive appends in amortized constant time); the arrays handed out are views of the filled part."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self._times = np.empty(0)
+        self._T_odom_base = np.empty((0, 4, 4))
+        self._odom_se2 = np.empty((0, 3, 3))
+
+    def extend(self, times: np.ndarray, T_odom_base: np.ndarray) -> None:
+        need = self.n + len(times)
+        if need > len(self._times):
+            capacity = max(need, 2 * len(self._times), 64)
+            self._times = np.resize(self._times, capacity)
+            self._T_odom_base = np.resize(self._T_odom_base, (capacity, 4, 4))
+            self._odom_se2 = np.resize(self._odom_se2, (capacity, 3, 3))
+        self._times[self.n : need] = times
+        self._T_odom_base[self.n : need] = T_odom_base
+        self._odom_se2[self.n : need] = se2_from_se3(T_odom_base).numpy()
+        self.n = need
+
+    @property
+    def times(self) -> np.ndarray:
+        return self._times[: self.n]
+
+    @property
+    def T_odom_base(self) -> np.ndarray:
+        return self._T_odom_base[: self.n]
+
+    @property
+    def odom_se2(self) -> np.ndarray:
+        return self._odom_se2[: self.n]
 
 
 @dataclass
@@ -152,40 +189,48 @@ class Localizer:
         cfg: the full config (`matching` for matching and patch selection, `backend` here).
         odometry: T_odom_base over time; must cover `frame_times`.
         frame_times: (N,) strictly increasing frame timestamps; one pose-graph node per frame.
+            Without `odometry` and `frame_times` the frames come one batch at a time through
+            `add_frames` (a robot's live input); the results are the same as with all given here.
         seed: seeds matching and CLIPPER (default `cfg.matching.particles.seed`); one seed gives
             identical results.
         incremental: False = offline mode: `add_submap` only matches with place recognition and
             pools; everything is solved in `finalize` (pass 1 + pass 2).
         matcher: the matching function (default `match_submap`; tests may inject their own).
+        online_covariance: also compute the marginal covariance of every online update's anchor
+            frame (one more GTSAM factorization per update), for `latest_estimate`.
     """
 
     def __init__(
         self,
         aerial_map: AerialMap,
         cfg: MeridianConfig,
-        odometry: Trajectory,
-        frame_times: np.ndarray,
+        odometry: Trajectory | None = None,
+        frame_times: np.ndarray | None = None,
         *,
         seed: int | None = None,
         incremental: bool = True,
         matcher: Matcher | None = None,
+        online_covariance: bool = False,
     ) -> None:
         if cfg.matching.place_recognition.mode == "near":
             raise ConfigError(
                 "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'coarse', 'global' or "
                 "'exhaustive' for localization (the localizer switches to 'near' by itself after the fix)"
             )
-        frame_times = np.asarray(frame_times, dtype=np.float64)
-        if frame_times.ndim != 1 or len(frame_times) == 0 or np.any(np.diff(frame_times) <= 0):
-            raise ValueError("frame_times must be a non-empty, strictly increasing 1-D array")
-        if not odometry.covers(frame_times):
-            raise ValueError("the odometry does not cover the frame times")
+        if (odometry is None) != (frame_times is None):
+            raise ValueError("give both odometry and frame_times, or neither (frames then come through add_frames)")
         self.aerial_map = aerial_map
         self.cfg = cfg
-        self.frame_times = frame_times
-        self.T_odom_base = odometry.interpolate(frame_times)  # (N, 4, 4)
-        self._odom_se2 = se2_from_se3(self.T_odom_base).numpy()  # (N, 3, 3)
+        self._frames = _FrameBuffer()
+        if frame_times is not None:
+            frame_times = np.asarray(frame_times, dtype=np.float64)
+            if frame_times.ndim != 1 or len(frame_times) == 0:
+                raise ValueError("frame_times must be a non-empty 1-D array")
+            if not odometry.covers(frame_times):
+                raise ValueError("the odometry does not cover the frame times")
+            self.add_frames(frame_times, odometry.interpolate(frame_times))
         self.incremental = incremental
+        self.online_covariance = online_covariance
         self._matcher: Matcher = matcher or match_submap
         seed = cfg.matching.particles.seed if seed is None else seed
         device = aerial_map.primitives.points_xy.device
@@ -210,6 +255,33 @@ class Localizer:
         # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
         self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
         self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
+
+    @property
+    def frame_times(self) -> np.ndarray:
+        """(N,) times of the frames so far (one pose-graph node each)."""
+        return self._frames.times
+
+    @property
+    def T_odom_base(self) -> np.ndarray:
+        """(N, 4, 4) odometry poses of the frames so far."""
+        return self._frames.T_odom_base
+
+    @property
+    def _odom_se2(self) -> np.ndarray:
+        return self._frames.odom_se2
+
+    def add_frames(self, frame_times: np.ndarray, T_odom_base: np.ndarray) -> None:
+        """Append frames (K,) strictly increasing times after the last frame's, (K, 4, 4) odometry poses."""
+        frame_times = np.asarray(frame_times, dtype=np.float64).reshape(-1)
+        T_odom_base = np.asarray(T_odom_base, dtype=np.float64).reshape(-1, 4, 4)
+        if len(T_odom_base) != len(frame_times):
+            raise ValueError(f"{len(frame_times)} frame times but {len(T_odom_base)} odometry poses")
+        if not (np.isfinite(frame_times).all() and np.isfinite(T_odom_base).all()):
+            raise ValueError("frame times and odometry poses must be finite")
+        previous = self.frame_times[-1:]
+        if np.any(np.diff(np.concatenate([previous, frame_times])) <= 0):
+            raise ValueError("frame times must be strictly increasing (and after the previous frames')")
+        self._frames.extend(frame_times, T_odom_base)
 
     # ------------------------------------------------------------------ matching
     def _node_of(self, t: float) -> int:
@@ -305,7 +377,7 @@ class Localizer:
         return n_inliers >= b.fix_min_inliers and n_inliers >= b.fix_min_inlier_fraction * n_submaps
 
     def _optimize(
-        self, inliers: LoopClosureCandidates, n_nodes: int, covariance: bool = False
+        self, inliers: LoopClosureCandidates, n_nodes: int, covariance: bool | Literal["last"] = False
     ) -> PoseGraphSolution:
         start = time.perf_counter()
         nodes = np.array([self._node_of(float(t)) for t in inliers.time], dtype=np.int64)
@@ -319,10 +391,14 @@ class Localizer:
         self._timer.add("pose_graph", start)
         return sol
 
-    def _anchor(self, sol: PoseGraphSolution, available_time: float) -> None:
+    def _anchor(self, inliers: LoopClosureCandidates, n_nodes: int, available_time: float) -> None:
+        """Optimize the graph up to frame n_nodes - 1 on these inliers; its last pose anchors the
+        online estimate from `available_time` on."""
+        sol = self._optimize(inliers, n_nodes, covariance="last" if self.online_covariance else False)
         last = len(sol.T_world_base) - 1
+        cov = None if sol.covariance is None else sol.covariance[-1]
         self._updates.append(
-            _Update(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]))
+            _Update(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]), last, cov)
         )
 
     def _commit(self, inliers: torch.Tensor) -> None:
@@ -369,6 +445,8 @@ class Localizer:
         The online estimate of frames from `available_time` on uses the result of this call.
         """
         start = time.perf_counter()
+        if not len(self.frame_times) or submap.time > self.frame_times[-1]:
+            raise ValueError(f"submap {submap.index}: time {submap.time} after the last frame given to the localizer")
         if self.submaps and submap.time < self.submaps[-1].time:
             raise ValueError(f"submap {submap.index}: time {submap.time} before the previous submap's")
         available_time = float(submap.time if available_time is None else available_time)
@@ -399,7 +477,7 @@ class Localizer:
                     self._set_pool(fresh, sel2.edges)
                     self.state = "post"
                     self.fix_submap_index, self.fix_time = submap.index, available_time
-                    self._anchor(self._optimize(fresh.select(sel2.inliers), n_nodes), available_time)
+                    self._anchor(fresh.select(sel2.inliers), n_nodes, available_time)
                     self._commit(sel2.inliers)
                     n_inliers = sel2.count
         else:
@@ -414,7 +492,7 @@ class Localizer:
             sel = self._pool_inliers()
             n_inliers = sel.count
             if n_inliers:
-                self._anchor(self._optimize(self.pool.select(sel.inliers), n_nodes), available_time)
+                self._anchor(self.pool.select(sel.inliers), n_nodes, available_time)
                 self._commit(sel.inliers)
         event = LocalizerEvent(
             submap_index=submap.index,
@@ -445,6 +523,22 @@ class Localizer:
         anchors = np.stack([u.T_world_odom for u in self._updates])[which[ok]]
         out[ok] = lift_se2(anchors @ self._odom_se2[ok], self.T_odom_base[ok])
         return self._to_world(out)
+
+    def latest_estimate(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The online T_world_base (4, 4, world) at the latest frame and its (3, 3) covariance of
+        (x, y, yaw) in world axes, or (None, None) before the fix. The covariance is the anchor
+        frame's marginal carried along the odometry since (`propagate_covariance`; None without
+        `online_covariance`)."""
+        if not self._updates:
+            return None, None
+        update = self._updates[-1]
+        k = len(self.frame_times) - 1
+        T = lift_se2(update.T_world_odom @ self._odom_se2[k : k + 1], self.T_odom_base[k : k + 1])
+        cov = None
+        if update.covariance is not None:
+            path = update.T_world_odom @ self._odom_se2[update.node : k + 1]
+            cov = propagate_covariance(update.covariance, path, self.cfg.backend)
+        return self._to_world(T)[0], cov
 
     def _to_world(self, T_map_base: np.ndarray) -> np.ndarray:
         """(N, 4, 4) poses in the map frame -> world (float64; NaN rows stay NaN)."""
@@ -489,7 +583,7 @@ class Localizer:
             cov = None
         origin = self._local_origin_xy
         return LocalizationResult(
-            frame_times=self.frame_times,
+            frame_times=self.frame_times.copy(),
             T_world_base=self._to_world(T_final),
             covariance=cov,
             T_world_base_incremental=self.online_estimate(),

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from meridian_torch.config import BackendConfig
 
-__all__ = ["PoseGraphSolution", "align_odometry", "optimize_pose_graph"]
+__all__ = ["PoseGraphSolution", "align_odometry", "optimize_pose_graph", "propagate_covariance"]
 
 
 def _se2(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -49,7 +50,7 @@ def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndar
 @dataclass(frozen=True)
 class PoseGraphSolution:
     T_world_base: np.ndarray  # (N, 3, 3) optimized pose of every node
-    covariance: np.ndarray | None  # (N, 3, 3) marginal covariance of (x, y, yaw), world-aligned axes
+    covariance: np.ndarray | None  # (N, 3, 3) (or (1, 3, 3) for the last node) marginal covariance of (x, y, yaw), world axes
     initial_error: float  # graph error at the initial values
     final_error: float
     iterations: int
@@ -61,12 +62,13 @@ def optimize_pose_graph(
     T_world_base_priors: np.ndarray,
     cfg: BackendConfig,
     *,
-    covariance: bool = False,
+    covariance: bool | Literal["last"] = False,
 ) -> PoseGraphSolution:
     """Optimize N nodes (odometry poses (N, 3, 3)) with K >= 1 loop-closure priors on `prior_nodes` (K,).
 
     `covariance=True` also returns every node's marginal covariance, rotated from GTSAM's body
-    tangent space into world-aligned (x east, y north, yaw) axes.
+    tangent space into world-aligned (x east, y north, yaw) axes; `"last"` only the last node's
+    ((1, 3, 3), what an online estimate needs).
     """
     import gtsam
 
@@ -105,8 +107,9 @@ def optimize_pose_graph(
     cov = None
     if covariance:
         marginals = gtsam.Marginals(graph, result)
-        local = np.stack([marginals.marginalCovariance(k) for k in range(n)])
-        rot = _se2(0.0, 0.0, xyt[:, 2])  # body tangent (x, y, theta) -> world-aligned axes
+        nodes = np.arange(n - 1, n) if covariance == "last" else np.arange(n)
+        local = np.stack([marginals.marginalCovariance(int(k)) for k in nodes])
+        rot = _se2(0.0, 0.0, xyt[nodes, 2])  # body tangent (x, y, theta) -> world-aligned axes
         rot[:, 2, 2] = 1.0
         cov = rot @ local @ np.swapaxes(rot, 1, 2)
     return PoseGraphSolution(
@@ -116,3 +119,25 @@ def optimize_pose_graph(
         final_error=float(graph.error(result)),
         iterations=int(optimizer.iterations()),
     )
+
+
+def propagate_covariance(covariance: np.ndarray, T_world_base: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """The (3, 3) covariance of (x, y, yaw), world axes, at the last of the poses (K, 3, 3) when
+    the first one's is `covariance` and the K - 1 steps between them are odometry factors (the
+    graph's noise): what the pose graph's marginal would be if no loop closure came after the
+    first pose. To first order: the first pose's yaw error and every step's yaw noise swing the
+    rest of the path about where they occur; each step adds its translation noise."""
+    p = T_world_base[:, :2, 2]
+    end = p[-1]
+
+    def lever(points: np.ndarray) -> np.ndarray:  # (M, 3): d(end x, y, yaw) / d(yaw at each point)
+        d = end - points
+        return np.stack([-d[:, 1], d[:, 0], np.ones(len(d))], axis=1)
+
+    J = np.eye(3)
+    J[:, 2] = lever(p[:1])[0]
+    out = J @ covariance @ J.T
+    v = lever(p[1:])  # a step's yaw noise turns the path from the step's end on
+    out += math.radians(cfg.odom_rot_sigma_deg) ** 2 * v.T @ v
+    out[:2, :2] += (len(p) - 1) * cfg.odom_trans_sigma_m**2 * np.eye(2)
+    return out

@@ -1,6 +1,6 @@
-"""The online run over one sequence: frames -> ground submaps -> localizer, as a robot would do it.
+"""The online run over one sequence folder: its frames fed through `LiveLocalizer` as a robot would.
 
-Frames are fed to the ground mapper in the order they were recorded; every submap it completes goes
+Frames go to the ground mapper in the order they were recorded; every submap it completes goes
 to the localizer at once, stamped with the time of the frame that completed it, so the incremental
 trajectory only uses what was known online. `finalize` then runs the offline pass for the final
 trajectory. Stage timings and the real-time factor make the run's cost visible.
@@ -12,12 +12,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from meridian_torch.backend.localizer import LocalizationResult, Localizer, LocalizerEvent
+from meridian_torch.backend.localizer import LocalizationResult, LocalizerEvent
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import SequenceReader
-from meridian_torch.mapping.ground_map import GroundMapper
+from meridian_torch.pipeline.live import LiveLocalizer
 from meridian_torch.runtime import Runtime, peak_rss_mib
 from meridian_torch.types import GroundSubmap
 
@@ -40,8 +40,6 @@ class SequenceRun:
         return self.sequence_duration_s / max(self.seconds.get("total", 0.0), 1e-9)
 
 
-
-
 def localize_sequence(
     reader: SequenceReader,
     aerial_map: AerialMap,
@@ -52,7 +50,8 @@ def localize_sequence(
     on_submap: Callable[[GroundSubmap, LocalizerEvent], None] | None = None,
     on_stage: Callable[[str], None] | None = None,
 ) -> SequenceRun:
-    """Map the ground side frame by frame, localize every submap as it appears, then finalize.
+    """Feed the sequence through `LiveLocalizer` in batches of `ground_map.batch_size` frames
+    (every submap localized as it appears), then finalize.
 
     Callbacks (all optional): `on_frames(done, total)` after each batch of frames,
     `on_submap(submap, event)` after each submap was localized, `on_stage(name)` when the final
@@ -60,46 +59,27 @@ def localize_sequence(
     """
     reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
     started = time.perf_counter()
-    times = reader.frame_times
-    mapper = GroundMapper.from_config(cfg, reader.camera, runtime)
-    localizer = Localizer(aerial_map, cfg, reader.odometry, times)
-    submaps: list[GroundSubmap] = []
-    mapping_s = 0.0
+    live = LiveLocalizer(aerial_map, cfg, reader.camera, runtime)
     batch = cfg.ground_map.batch_size
     n = len(reader)
-
-    def localize(new: list[GroundSubmap], available_time: float) -> None:
-        for submap in new:
-            submaps.append(submap)
-            with stage("localization"):
-                event = localizer.add_submap(submap, available_time=available_time)
-            if on_submap is not None:
-                on_submap(submap, event)
-
     for start in range(0, n, batch):
-        t0 = time.perf_counter()
         with stage("read frames"):
             frames = [reader[i] for i in range(start, min(start + batch, n))]
-        with stage("ground mapping"):
-            new = mapper.add_frames(frames)
-        mapping_s += time.perf_counter() - t0
-        localize(new, frames[-1].timestamp)
+        estimate = live.add_frames(frames)
+        if on_submap is not None:
+            for event in estimate.events:
+                on_submap(live.submaps[event.submap_index], event)
         if on_frames is not None:
             on_frames(start + len(frames), n)
-    t0 = time.perf_counter()
-    with stage("ground mapping"):
-        last = mapper.finish()
-    mapping_s += time.perf_counter() - t0
-    localize(last, float(times[-1]))
     if on_stage is not None:
         on_stage("final optimization")
-    with stage("final pass"):
-        result = localizer.finalize()
-    seconds = {"ground_mapping": mapping_s, **result.timings}
+    result = live.finish()
+    seconds = {"ground_mapping": live.mapping_seconds, **result.timings}
     seconds["total"] = time.perf_counter() - started
+    times = reader.frame_times
     return SequenceRun(
         result=result,
-        submaps=submaps,
+        submaps=live.submaps,
         seconds=seconds,
         sequence_duration_s=float(times[-1] - times[0]),
         peak_memory_mib=peak_rss_mib(),

@@ -1,0 +1,82 @@
+"""The live API: frames one at a time give what the folder pipeline gives on the same frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.io.ortho import read_orthophoto
+from meridian_torch.io.sequence import SequenceReader
+from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
+from meridian_torch.pipeline import LiveLocalizer, localize_sequence
+from meridian_torch.runtime import resolve_runtime
+from meridian_torch.sim.simulate import simulate_sequence
+
+# A drive long enough for a global fix on the tiny world; frames one batch each, as live input comes.
+CFG = load_config(CONFIG_DIR / "tiny.yaml", ["sim.trajectory.length_m=400", "sim.world.size_m=[200.0,200.0]",
+                                             "ground_map.batch_size=1"])
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("live") / "seq"
+    simulate_sequence(CFG.sim, out)
+    mapper = AerialMapper.from_config(CFG.aerial_map, CFG.perception, CFG.primitives)
+    return SequenceReader(out), build_aerial_map(read_orthophoto(out), mapper)
+
+
+@pytest.fixture(scope="module")
+def live_run(world):
+    reader, aerial_map = world
+    live = LiveLocalizer(aerial_map, CFG, reader.camera, resolve_runtime(CFG.runtime))
+    estimates = [live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp) for f in (reader[i] for i in range(len(reader)))]
+    return estimates, live.finish()
+
+
+@pytest.mark.slow
+def test_frame_by_frame_equals_the_folder_pipeline(world, live_run) -> None:
+    reader, aerial_map = world
+    estimates, live_result = live_run
+    folder = localize_sequence(reader, aerial_map, CFG, resolve_runtime(CFG.runtime)).result
+    assert folder.localized and live_result.localized and folder.fix_submap_index is not None
+    np.testing.assert_array_equal(live_result.T_world_base, folder.T_world_base)
+    np.testing.assert_array_equal(live_result.T_world_base_incremental, folder.T_world_base_incremental)
+    # what the robot was told at each frame is the folder run's online estimate at that frame
+    told = np.stack([np.full((4, 4), np.nan) if e.T_world_base is None else e.T_world_base for e in estimates])
+    np.testing.assert_array_equal(told, folder.T_world_base_incremental)
+    assert [e.time for e in estimates] == reader.frame_times.tolist()
+    assert sum(len(e.events) for e in estimates) + 1 >= len(folder.events) >= sum(len(e.events) for e in estimates)
+
+
+@pytest.mark.slow
+def test_the_estimate_carries_a_covariance_that_grows_between_updates(live_run) -> None:
+    estimates, _ = live_run
+    step_var = np.radians(CFG.backend.odom_rot_sigma_deg) ** 2
+    fixed = [e for e in estimates if e.localized]
+    assert fixed and all(e.state == "post" for e in fixed)
+    assert all(e.covariance is None and e.state == "pre" for e in estimates[: estimates.index(fixed[0])])
+    for e in fixed:
+        assert np.allclose(e.covariance, e.covariance.T) and np.all(np.linalg.eigvalsh(e.covariance) > 0)
+    # between two submap updates only odometry adds up: one odometry factor's yaw variance per frame
+    steps = [(a, b) for a, b in zip(fixed, fixed[1:]) if not b.events]
+    assert steps
+    for a, b in steps:
+        assert b.covariance[2, 2] - a.covariance[2, 2] == pytest.approx(step_var, rel=1e-6)
+
+
+def test_bad_frames_are_refused_naming_the_field(world) -> None:
+    reader, aerial_map = world
+    live = LiveLocalizer(aerial_map, CFG, reader.camera, resolve_runtime(CFG.runtime))
+    f = reader[0]
+    with pytest.raises(ValueError, match="rgb: expected"):
+        live.add_frame(f.rgb[:, :, 0], f.depth, f.T_odom_base, f.timestamp)
+    with pytest.raises(ValueError, match="depth: expected"):
+        live.add_frame(f.rgb, f.depth[1:], f.T_odom_base, f.timestamp)
+    with pytest.raises(ValueError, match="T_odom_base: expected"):
+        live.add_frame(f.rgb, f.depth, np.full((4, 4), np.nan), f.timestamp)
+    live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp)
