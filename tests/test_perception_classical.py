@@ -167,3 +167,42 @@ def test_device_and_dtype_follow_input(segmenter: ClassicalSegmenter, device: st
     g = ColourTextureGlobalDescriber(PixelFeatures()).describe(img)
     assert d.dtype == dtype and d.device == img.device
     assert g.dtype == dtype and g.device == img.device
+
+
+@pytest.mark.parametrize("sigma", [0.7, 1.0, 3.0])
+def test_shift_and_add_blur_equals_a_depthwise_convolution(sigma: float) -> None:
+    """The blur's tap loop against the textbook separable convolution (replicate padding)."""
+    import math
+
+    import torch.nn.functional as F
+
+    from meridian_torch.perception.classical import _gaussian_blur
+
+    x = torch.rand(3, 2, 23, 31, generator=torch.Generator().manual_seed(1))
+    r = max(1, math.ceil(3 * sigma))
+    t = torch.arange(-r, r + 1, dtype=torch.float32)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    k = k / k.sum()
+    ref = F.pad(x, (r, r, r, r), mode="replicate")
+    ref = F.conv2d(ref, k.view(1, 1, 1, -1).expand(2, 1, 1, -1), groups=2)
+    ref = F.conv2d(ref, k.view(1, 1, -1, 1).expand(2, 1, -1, 1), groups=2)
+    torch.testing.assert_close(_gaussian_blur(x, sigma), ref, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("circular", [True, False])
+def test_soft_bins_equal_a_per_bin_loop(circular: bool) -> None:
+    from meridian_torch.perception.classical import _soft_bins
+
+    bins = 5
+    value = torch.rand(2, 7, 9, generator=torch.Generator().manual_seed(2)) * (bins if circular else bins - 1)
+    want = torch.zeros(2, bins, 7, 9)
+    for c in range(bins):
+        d = (value - c).abs()
+        if circular:
+            d = torch.minimum(d, bins - d)
+        want[:, c] = (1 - d / 1.5).clamp(min=0)
+    want /= want.sum(dim=1, keepdim=True)
+    torch.testing.assert_close(_soft_bins(value, bins, circular), want, atol=1e-6, rtol=0)
+    out = torch.empty(2, bins + 3, 7, 9)
+    _soft_bins(value, bins, circular, out=out[:, 1 : bins + 1])
+    torch.testing.assert_close(out[:, 1 : bins + 1], want, atol=1e-6, rtol=0)
