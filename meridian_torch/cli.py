@@ -5,7 +5,9 @@ Heavy modules (simulator, renderer, matplotlib) are imported inside the commands
 
 from __future__ import annotations
 
+import errno
 import functools
+import json
 import os
 import time
 from collections.abc import Iterator
@@ -49,8 +51,15 @@ SetOption = Annotated[
 ]
 
 
+# Operating-system errors that are the user's situation, not a bug: permissions, a full or
+# read-only disk, something in the way. They get one line like our own errors.
+_USER_OS_ERRORS = {errno.EACCES, errno.EPERM, errno.EEXIST, errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EISDIR,
+                   errno.ENOTDIR, errno.ENOENT, errno.ENOTEMPTY}
+
+
 def _error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
-    """MeridianError -> one line on stderr and exit code 1; anything else keeps its traceback."""
+    """MeridianError and the user's OS errors (permission, disk full, file in the way) -> one line on
+    stderr and exit code 1; Ctrl-C -> a line and exit code 130; anything else keeps its traceback."""
 
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -59,6 +68,15 @@ def _error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
         except MeridianError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from None
+        except OSError as exc:
+            if exc.errno not in _USER_OS_ERRORS:
+                raise
+            where = f"{exc.filename}: " if exc.filename else ""
+            typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
+            raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            typer.echo("interrupted", err=True)
+            raise typer.Exit(130) from None
 
     return wrapper
 
@@ -303,45 +321,47 @@ def map_ground_command(
     config: ConfigOption = None,
     set_: SetOption = None,
     plots: Annotated[bool, typer.Option(help="Write a PNG per submap to OUT/plots/.")] = True,
+    overwrite: Annotated[bool, typer.Option(help="Replace an output folder that holds files.")] = False,
 ) -> None:
     """Map the ground side: frames -> tracked 3D segments -> 2D point/line submaps (odom frame).
 
     Writes OUT/submaps.mts (format: meridian_torch/io/submap_file.py) and, with --plots, one PNG
     per submap; when the sequence has groundtruth.tum, the PNG also shows the primitives over the
-    orthophoto through the ground-truth pose.
+    orthophoto through the ground-truth pose. The outputs go into a temporary folder that replaces
+    OUT only when complete.
     """
     import numpy as np
 
     from meridian_torch.geometry.se3 import se3_inverse
+    from meridian_torch.io.atomic import atomic_directory
     from meridian_torch.io.run_info import write_run_info
-    from meridian_torch.io.sequence import SequenceReader
     from meridian_torch.io.submap_file import save_ground_submaps
     from meridian_torch.mapping.ground_map import GroundMapper, ground_map_config_dict
     from meridian_torch.runtime import resolve_runtime
 
+    _refuse_foreign_folder(out, overwrite)
     cfg = _load(config, set_)
-    reader = SequenceReader(sequence)
+    reader, ortho = _open_sequence(cfg, sequence)
     mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
     started = time.perf_counter()
-    with _progress("mapping ground", "frame") as update:
-        submaps = mapper.map_sequence(reader, update)
-    seconds = time.perf_counter() - started
-    out.mkdir(parents=True, exist_ok=True)
-    save_ground_submaps(submaps, out / "submaps.mts", config=ground_map_config_dict(cfg),
-                        source={"sequence": str(sequence.resolve())},
-                        descriptor_dim=mapper.describer.dim, global_descriptor_dim=mapper.global_describer.dim)
-    write_run_info(out, cfg, "map-ground")
-    if plots:
-        from meridian_torch.evaluation.plots import plot_ground_submap
+    with _interruptible(out), atomic_directory(out, overwrite=True) as tmp:
+        with _progress("mapping ground", "frame") as update:
+            submaps = mapper.map_sequence(reader, update)
+        seconds = time.perf_counter() - started
+        save_ground_submaps(submaps, tmp / "submaps.mts", config=ground_map_config_dict(cfg),
+                            source={"sequence": str(sequence.resolve())},
+                            descriptor_dim=mapper.describer.dim, global_descriptor_dim=mapper.global_describer.dim)
+        write_run_info(tmp, cfg, "map-ground")
+        if plots:
+            from meridian_torch.evaluation.plots import plot_ground_submap
 
-        ortho = reader.ortho() if reader.groundtruth is not None else None
-        for submap, geometry in zip(submaps, mapper.geometries, strict=True):
-            T_world_odom = None
-            if reader.groundtruth is not None and reader.groundtruth.covers(np.array([submap.time])):
-                T_world_odom = reader.groundtruth.interpolate(np.array([submap.time]))[0] @ se3_inverse(
-                    submap.T_odom_base)
-            plot_ground_submap(submap, out / "plots" / f"submap_{submap.index:03d}.png", geometry=geometry,
-                               ortho=ortho, T_world_odom=T_world_odom)
+            for submap, geometry in zip(submaps, mapper.geometries, strict=True):
+                T_world_odom = None
+                if reader.groundtruth is not None and reader.groundtruth.covers(np.array([submap.time])):
+                    T_world_odom = reader.groundtruth.interpolate(np.array([submap.time]))[0] @ se3_inverse(
+                        submap.T_odom_base)
+                plot_ground_submap(submap, tmp / "plots" / f"submap_{submap.index:03d}.png", geometry=geometry,
+                                   ortho=ortho if reader.groundtruth is not None else None, T_world_odom=T_world_odom)
     duration = float(reader.frame_times[-1] - reader.frame_times[0])
     typer.echo(
         f"wrote {out / 'submaps.mts'}: {len(submaps)} submaps, "
@@ -352,20 +372,69 @@ def map_ground_command(
     )
 
 
-def _load_or_build_map(cfg: MeridianConfig, map_path: Path, ortho_path: Path) -> Any:
-    """The aerial map at `map_path` (built from `ortho_path` first when missing); its config must match."""
-    from meridian_torch.io.map_file import load_aerial_map
+def _refuse_foreign_folder(out: Path, overwrite: bool, command: str | None = None) -> None:
+    """An output folder that holds files is refused without --overwrite, unless `command` is given
+    and the folder is that command's own earlier output (its run.json says so)."""
+    if not out.exists():
+        return
+    if out.is_dir() and not any(out.iterdir()):
+        return
+    if overwrite:
+        return
+    if command is not None and out.is_dir():
+        from meridian_torch.io.run_info import RUN_FILE
+
+        try:
+            ours = json.loads((out / RUN_FILE).read_text()).get("command") == command
+        except (OSError, ValueError, AttributeError):
+            ours = False
+        if ours:
+            return
+    raise OutputExistsError(f"{out}: already exists and holds files; pass --overwrite to replace it, or choose "
+                            "another output folder")
+
+
+@contextmanager
+def _interruptible(out: Path) -> Iterator[None]:
+    """Ctrl-C inside the block: say that `out` was left as it was (the block writes into a temporary
+    folder that only replaces `out` when complete) and exit 130."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: nothing was written, {out} is as it was", err=True)
+        raise typer.Exit(130) from None
+
+
+def _open_sequence(cfg: MeridianConfig, sequence: Path) -> tuple[Any, Any]:
+    """The sequence reader and its orthophoto, checked before any work: the folder's files, odometry
+    gaps, the orthophoto and its georeference (a problem found here costs seconds, not a run)."""
+    from meridian_torch.io.sequence import SequenceReader
+
+    reader = SequenceReader(sequence)
+    reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
+    return reader, reader.ortho()
+
+
+def _load_or_build_map(cfg: MeridianConfig, map_path: Path, ortho_path: Path, ortho: Any = None) -> Any:
+    """The aerial map at `map_path` (built from `ortho_path` first when missing); its config must
+    match, and its georeference that of `ortho` (the sequence's orthophoto) when given."""
+    from meridian_torch.io.map_file import MapFileError, georeference_mismatches, load_aerial_map
     from meridian_torch.mapping.aerial_map import map_config_dict
 
     map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
     if map_path.exists():
         typer.echo(f"using the aerial map {map_path}")
-        return load_aerial_map(map_path, expected_config=map_config)
+        aerial_map = load_aerial_map(map_path, expected_config=map_config)
+        mismatches = [] if ortho is None else georeference_mismatches(aerial_map, ortho)
+        if mismatches:
+            raise MapFileError(f"{map_path}: built from another orthophoto than {ortho_path}'s ("
+                               + "; ".join(mismatches) + "); rebuild it (choose another --map or delete this one)")
+        return aerial_map
     typer.echo(f"building the aerial map {map_path} from {ortho_path}")
     return _build_map(cfg, ortho_path, map_path)
 
 
-def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path,
+def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out: Path,
               shown: Path | None = None) -> dict[str, Any] | None:
     """Run the online pipeline with live progress, write the outputs into `out`, evaluate when ground
     truth exists; messages name `shown` (where the outputs will be) instead of `out`."""
@@ -374,12 +443,10 @@ def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path,
     from meridian_torch.evaluation.report import write_report
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
     from meridian_torch.io.results import write_outputs
-    from meridian_torch.io.sequence import SequenceReader
     from meridian_torch.pipeline import localize_sequence
     from meridian_torch.runtime import resolve_runtime
 
     runtime = resolve_runtime(cfg.runtime)
-    reader = SequenceReader(sequence)
     bar = tqdm(desc="localizing", unit="frame", total=len(reader), dynamic_ncols=True)
 
     def on_frames(done: int, total: int) -> None:
@@ -401,7 +468,6 @@ def _localize(cfg: MeridianConfig, sequence: Path, aerial_map: Any, out: Path,
         )
     finally:
         bar.close()
-    ortho = reader.ortho()
     write_outputs(out, run.result, crs=ortho.crs)
     metrics = None
     if reader.groundtruth is not None:
@@ -449,18 +515,13 @@ def localize(
     from meridian_torch.io.atomic import atomic_directory
     from meridian_torch.io.run_info import write_run_info
 
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise OutputExistsError(f"{out}: already exists and holds files; pass --overwrite to replace it, or choose "
-                                "another output folder")
+    _refuse_foreign_folder(out, overwrite)
     cfg = _load(config, set_)
-    try:
-        with atomic_directory(out, overwrite=True) as tmp:
-            write_run_info(tmp, cfg, "localize")
-            aerial_map = _load_or_build_map(cfg, map_file, sequence)
-            metrics = _localize(cfg, sequence, aerial_map, tmp, shown=out)
-    except KeyboardInterrupt:
-        typer.echo(f"interrupted: nothing was written, {out} is as it was", err=True)
-        raise typer.Exit(130) from None
+    reader, ortho = _open_sequence(cfg, sequence)
+    with _interruptible(out), atomic_directory(out, overwrite=True) as tmp:
+        write_run_info(tmp, cfg, "localize")
+        aerial_map = _load_or_build_map(cfg, map_file, sequence, ortho)
+        metrics = _localize(cfg, reader, ortho, aerial_map, tmp, shown=out)
     if metrics is not None:
         _print_metrics(metrics)
     typer.echo(f"outputs in {out}")
@@ -497,42 +558,50 @@ def demo(
     ] = None,
     config: ConfigOption = None,
     set_: SetOption = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an output folder that holds files other than an "
+                                                 "earlier demo's.")] = False,
 ) -> None:
     """Run the whole system on the built-in default world and print its ATE.
 
     Renders the world once into the cache, builds (or reuses) its aerial map, then maps the ground
     frames, localizes every submap online, optimizes the final trajectory and evaluates it against
-    the simulator's ground truth. Outputs (trajectories, metrics, plots, report) go to OUT.
+    the simulator's ground truth. Outputs (trajectories, metrics, plots, report) go to OUT, through
+    a temporary folder that replaces it when the demo is complete; an earlier demo's OUT is
+    replaced, any other folder with files needs --overwrite.
     """
     from meridian_torch.evaluation.plots import plot_aerial_map
-    from meridian_torch.io.ortho import read_orthophoto
+    from meridian_torch.io.atomic import atomic_directory
     from meridian_torch.io.run_info import write_run_info
     from meridian_torch.mapping.aerial_map import map_config_dict
     from meridian_torch.sim.preview import write_preview
 
+    _refuse_foreign_folder(out, overwrite, command="demo")
     cfg = _load(config if config is not None else CONFIG_DIR / "demo.yaml", set_)
     started = time.perf_counter()
-    write_run_info(out, cfg, "demo")
     # Cache keys are the configs that shape each product: any change renders or builds anew.
     sequence = (cache_dir or _default_cache_dir()) / "worlds" / f"{cfg.sim.name}-{config_key(cfg.sim.model_dump(mode='json'))}"
-    if sequence.exists():
-        typer.echo(f"[1/3] using the cached world {sequence}")
-    else:
-        typer.echo(f"[1/3] rendering the demo world into {sequence} (once)")
-        summary = _simulate(cfg, sequence, overwrite=False)
-        typer.echo(f"      {summary.frames} frames, {summary.path_length_m:.0f} m of driving")
-    preview = write_preview(sequence, out / "preview.png")
+    with _interruptible(out), atomic_directory(out, overwrite=True) as tmp:
+        write_run_info(tmp, cfg, "demo")
+        if sequence.exists():
+            typer.echo(f"[1/3] using the cached world {sequence}")
+        else:
+            typer.echo(f"[1/3] rendering the demo world into {sequence} (once)")
+            summary = _simulate(cfg, sequence, overwrite=False)
+            typer.echo(f"      {summary.frames} frames, {summary.path_length_m:.0f} m of driving")
+        preview = write_preview(sequence, tmp / "preview.png")
 
-    map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
-    typer.echo("[2/3] aerial map")
-    aerial_map = _load_or_build_map(cfg, sequence / f"aerial-{config_key(map_config)}.mtm", sequence)
-    prims = aerial_map.primitives
-    typer.echo(f"      {len(aerial_map)} patches, {int(prims.point_valid.sum())} points, {int(prims.line_valid.sum())} lines")
-    map_png = plot_aerial_map(aerial_map, read_orthophoto(sequence), out / "aerial_map.png")
+        map_config = map_config_dict(cfg.aerial_map, cfg.perception, cfg.primitives)
+        typer.echo("[2/3] aerial map")
+        reader, ortho = _open_sequence(cfg, sequence)
+        aerial_map = _load_or_build_map(cfg, sequence / f"aerial-{config_key(map_config)}.mtm", sequence, ortho)
+        prims = aerial_map.primitives
+        typer.echo(f"      {len(aerial_map)} patches, {int(prims.point_valid.sum())} points, "
+                   f"{int(prims.line_valid.sum())} lines")
+        map_png = plot_aerial_map(aerial_map, ortho, tmp / "aerial_map.png")
 
-    typer.echo("[3/3] ground mapping and localization")
-    metrics = _localize(cfg, sequence, aerial_map, out)
-    typer.echo(f"plots: {preview}, {map_png}")
+        typer.echo("[3/3] ground mapping and localization")
+        metrics = _localize(cfg, reader, ortho, aerial_map, tmp, shown=out)
+    typer.echo(f"plots: {out / preview.name}, {out / map_png.name}")
     if metrics is not None:
         _print_metrics(metrics)
     typer.echo(f"demo finished in {time.perf_counter() - started:.1f} s; outputs in {out}")

@@ -65,6 +65,7 @@ def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: 
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
+    monkeypatch.setattr(cli, "_open_sequence", lambda cfg, sequence: (None, None))  # a sequence that checks out
     monkeypatch.setattr(cli, "_load_or_build_map", interrupt)
     interrupted = CliRunner().invoke(app, args)
     assert interrupted.exit_code == 130 and "interrupted: nothing was written" in interrupted.output

@@ -35,7 +35,10 @@ from meridian_torch.io.npz_container import read_container, write_container
 from meridian_torch.mapping.tiling import PatchGrid
 from meridian_torch.types import PrimitiveBatch
 
-__all__ = ["MAP_FORMAT", "MAP_FORMAT_VERSION", "AerialMap", "MapFileError", "save_aerial_map", "load_aerial_map"]
+__all__ = [
+    "MAP_FORMAT", "MAP_FORMAT_VERSION", "AerialMap", "MapFileError", "georeference_mismatches", "load_aerial_map",
+    "save_aerial_map",
+]
 
 MAP_FORMAT = "meridian-torch aerial map"
 MAP_FORMAT_VERSION = 2
@@ -141,3 +144,22 @@ def load_aerial_map(path: Path, expected_config: dict[str, Any] | None = None) -
         content_hash=header["content_hash"],
         local_origin_xy=tuple(float(v) for v in geo.get("local_origin", (0.0, 0.0))),
     )
+
+
+def georeference_mismatches(aerial_map: AerialMap, ortho: Any) -> list[str]:
+    """How the map's georeference differs from an orthophoto's (`io.ortho.Orthophoto`): CRS, pixel
+    size, origin (to a thousandth of a pixel) and image size. Empty when the map was built from it
+    (or from imagery of the same extent and grid)."""
+    problems = []
+    if aerial_map.crs != ortho.crs:
+        problems.append(f"CRS {aerial_map.crs} vs {ortho.crs}")
+    if not np.isclose(aerial_map.meters_per_pixel, ortho.meters_per_pixel, rtol=1e-9, atol=0.0):
+        problems.append(f"meters_per_pixel {aerial_map.meters_per_pixel} vs {ortho.meters_per_pixel}")
+    offset = np.subtract(aerial_map.origin_xy, ortho.origin_xy)
+    if np.abs(offset).max() > 1e-3 * ortho.meters_per_pixel:
+        problems.append(f"origin {list(aerial_map.origin_xy)} vs {list(ortho.origin_xy)} "
+                        f"({np.hypot(*offset):.3f} m apart)")
+    if tuple(aerial_map.image_size) != tuple(ortho.size_px):
+        problems.append(f"image size {list(aerial_map.image_size)} vs {list(ortho.size_px)} px")
+    return problems
+
