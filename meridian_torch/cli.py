@@ -57,6 +57,27 @@ _USER_OS_ERRORS = {errno.EACCES, errno.EPERM, errno.EEXIST, errno.ENOSPC, errno.
                    errno.ENOTDIR, errno.ENOENT, errno.ENOTEMPTY}
 
 
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a job scheduler, `kill`, a robot's shutdown) unwinds like Ctrl-C, so the same
+    clean-up runs: temporary folders are removed and outputs left as they were."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
     """MeridianError and the user's OS errors (permission, disk full, file in the way) -> one line on
     stderr and exit code 1; Ctrl-C -> a line and exit code 130; anything else keeps its traceback."""
@@ -64,7 +85,8 @@ def _error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return command(*args, **kwargs)
+            with _terminate_as_interrupt():
+                return command(*args, **kwargs)
         except MeridianError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from None

@@ -177,3 +177,32 @@ def test_map_ground_writes_its_folder_whole(world: tuple[Path, Path], tmp_path: 
     result = CliRunner().invoke(app, ["map-ground", str(world[0]), "-o", str(out), "-c", CONFIG, "--no-plots"])
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "run.json", "submaps.mts"]
+
+
+def test_sigterm_during_localize_leaves_the_folder_as_it_was(world: tuple[Path, Path], tmp_path: Path) -> None:
+    """A scheduler's SIGTERM unwinds like Ctrl-C: exit 130, OUT untouched, no temporary folder left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "trajectory.tum").write_text("# an earlier run\n")
+    command = [sys.executable, "-c", "from meridian_torch.cli import app; app()", "localize", str(world[0]),
+               "--map", str(world[1]), "-o", str(out), "--overwrite", "-c", CONFIG]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    seen = []
+    for line in proc.stdout:  # wait until the run is under way (the map is loaded)
+        seen.append(line)
+        if "using the aerial map" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=120)
+    output = "".join(seen) + rest
+    assert proc.returncode == 130, output
+    assert "interrupted: nothing was written" in output and "Traceback" not in output
+    assert [p.name for p in out.iterdir()] == ["trajectory.tum"]
+    assert (out / "trajectory.tum").read_text() == "# an earlier run\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"], "no temporary folder left"
