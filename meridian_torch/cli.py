@@ -9,6 +9,7 @@ import errno
 import functools
 import json
 import os
+import shutil
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -23,7 +24,7 @@ import typer
 
 from meridian_torch import __version__
 from meridian_torch.config import CONFIG_DIR, MeridianConfig, config_key, dump_config, load_config
-from meridian_torch.errors import MeridianError, OutputExistsError
+from meridian_torch.errors import CheckpointError, MeridianError, OutputExistsError
 
 __all__ = ["app", "main"]
 
@@ -427,6 +428,15 @@ def _interruptible(out: Path) -> Iterator[None]:
         raise typer.Exit(130) from None
 
 
+def _run_key(cfg: MeridianConfig, aerial_map: Any, sequence: Path) -> str:
+    """What a checkpoint must belong to: the resolved config, the map and the sequence's files."""
+    from meridian_torch.pipeline.checkpoint import run_key
+
+    ground = sequence / "ground"
+    return run_key(dump_config(cfg), aerial_map.content_hash,
+                   [ground / "frames.csv", ground / "odometry.tum", ground / "camera.json"])
+
+
 def _open_sequence(cfg: MeridianConfig, sequence: Path) -> tuple[Any, Any]:
     """The sequence reader and its orthophoto, checked before any work: the folder's files, odometry
     gaps, the orthophoto and its georeference (a problem found here costs seconds, not a run)."""
@@ -457,7 +467,7 @@ def _load_or_build_map(cfg: MeridianConfig, map_path: Path, ortho_path: Path, or
 
 
 def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out: Path,
-              shown: Path | None = None) -> dict[str, Any] | None:
+              shown: Path | None = None, matcher: Any = None) -> dict[str, Any] | None:
     """Run the online pipeline with live progress, write the outputs into `out`, evaluate when ground
     truth exists; messages name `shown` (where the outputs will be) instead of `out`."""
     from tqdm import tqdm
@@ -486,7 +496,7 @@ def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out
     try:
         run = localize_sequence(
             reader, aerial_map, cfg, runtime, on_frames=on_frames, on_submap=on_submap,
-            on_stage=lambda name: bar.write(f"{name} ..."),
+            on_stage=lambda name: bar.write(f"{name} ..."), matcher=matcher,
         )
     finally:
         bar.close()
@@ -525,6 +535,9 @@ def localize(
     set_: SetOption = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an output folder that holds files (all of them, when "
                                                  "the run is complete).")] = False,
+    resume: Annotated[bool, typer.Option(help="Continue an interrupted run of the same command from its checkpoint "
+                                              "(.OUT.checkpoint beside OUT): same result as an uninterrupted run.")]
+    = False,
 ) -> None:
     """Localize a sequence in an aerial map: online (incremental) and offline (final) trajectories.
 
@@ -532,18 +545,40 @@ def localize(
     with plots, geo outputs when the orthophoto has a CRS, and metrics.json when groundtruth.tum
     exists. Progress shows every submap, its hypotheses, the inlier count and the global fix.
     The outputs are written into a temporary folder beside OUT that replaces it only when the run
-    is complete: an interrupted or failed run leaves OUT as it was.
+    is complete: an interrupted or failed run leaves OUT as it was. Matching results are kept in a
+    checkpoint folder beside OUT (.OUT.checkpoint) until the run completes; after an interruption
+    (Ctrl-C, SIGTERM) the same command with --resume continues from it.
     """
     from meridian_torch.io.atomic import atomic_directory
     from meridian_torch.io.run_info import write_run_info
+    from meridian_torch.pipeline.checkpoint import MatchingCheckpoint
 
     _refuse_foreign_folder(out, overwrite)
     cfg = _load(config, set_)
     reader, ortho = _open_sequence(cfg, sequence)
-    with _interruptible(out), atomic_directory(out, overwrite=True) as tmp:
-        write_run_info(tmp, cfg, "localize")
-        aerial_map = _load_or_build_map(cfg, map_file, sequence, ortho)
-        metrics = _localize(cfg, reader, ortho, aerial_map, tmp, shown=out)
+    checkpoint_dir = out.parent / f".{out.name}.checkpoint"
+    if resume and not checkpoint_dir.exists():
+        raise CheckpointError(f"{checkpoint_dir}: no checkpoint to resume (it is kept only when a run was interrupted)")
+    if not resume and checkpoint_dir.exists():
+        typer.echo(f"discarding the checkpoint of an interrupted earlier run ({checkpoint_dir}; --resume continues it)")
+        shutil.rmtree(checkpoint_dir)
+    checkpoint = None
+    try:
+        with _interruptible(out), atomic_directory(out, overwrite=True) as tmp:
+            write_run_info(tmp, cfg, "localize")
+            aerial_map = _load_or_build_map(cfg, map_file, sequence, ortho)
+            checkpoint = MatchingCheckpoint(checkpoint_dir, _run_key(cfg, aerial_map, sequence))
+            if resume:
+                typer.echo(f"resuming: {checkpoint.recorded} matching results in {checkpoint_dir}")
+            metrics = _localize(cfg, reader, ortho, aerial_map, tmp, shown=out, matcher=checkpoint)
+    except typer.Exit as stop:
+        if stop.exit_code == 130 and checkpoint is not None and checkpoint.recorded:
+            typer.echo(f"{checkpoint.recorded} matching results are kept in {checkpoint_dir}: the same command with "
+                       "--resume continues from there", err=True)
+        raise
+    if resume:
+        typer.echo(f"resumed: {checkpoint.replayed} matching results taken from the checkpoint")
+    checkpoint.discard()
     if metrics is not None:
         _print_metrics(metrics)
     typer.echo(f"outputs in {out}")

@@ -3,7 +3,8 @@ into a one-line message and exit code 1."""
 
 from __future__ import annotations
 
-__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError", "ModelWeightsError", "ExportError"]
+__all__ = ["MeridianError", "ConfigError", "SequenceFormatError", "OrthophotoError", "SimulationError", "ModelWeightsError", "ExportError",
+           "OutputExistsError", "CheckpointError"]
 
 
 class MeridianError(Exception):
@@ -36,3 +37,7 @@ class ExportError(MeridianError):
 
 class OutputExistsError(MeridianError):
     """An output location holds files the command would replace; nothing was written."""
+
+
+class CheckpointError(MeridianError):
+    """A run checkpoint is missing, damaged or belongs to another run; the message names the folder."""

@@ -25,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from meridian_torch.backend.localizer import LocalizationResult, Localizer, LocalizerEvent
+from meridian_torch.backend.localizer import LocalizationResult, Localizer, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
@@ -62,14 +62,22 @@ class LiveLocalizer:
         camera: the RGB-D camera (intrinsics, image size, T_base_camera).
         runtime: device and dtype (`meridian_torch.runtime.resolve_runtime(cfg.runtime)`).
         seed: seeds matching and CLIPPER (default `cfg.matching.particles.seed`).
+        matcher: the matching function (default `match_submap`; e.g. a `MatchingCheckpoint`).
     """
 
     def __init__(
-        self, aerial_map: AerialMap, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime, *, seed: int | None = None
+        self,
+        aerial_map: AerialMap,
+        cfg: MeridianConfig,
+        camera: CameraModel,
+        runtime: Runtime,
+        *,
+        seed: int | None = None,
+        matcher: Matcher | None = None,
     ) -> None:
         self.camera = camera
         self.mapper = GroundMapper.from_config(cfg, camera, runtime)
-        self.localizer = Localizer(aerial_map, cfg, seed=seed, online_covariance=cfg.backend.covariance)
+        self.localizer = Localizer(aerial_map, cfg, seed=seed, matcher=matcher, online_covariance=cfg.backend.covariance)
         self.submaps: list[GroundSubmap] = []
         self.mapping_seconds = 0.0  # wall time in the ground mapper so far
         self._n_frames = 0

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from meridian_torch.backend.localizer import LocalizationResult, LocalizerEvent
+from meridian_torch.backend.localizer import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.map_file import AerialMap
@@ -49,17 +49,18 @@ def localize_sequence(
     on_frames: Callable[[int, int], None] | None = None,
     on_submap: Callable[[GroundSubmap, LocalizerEvent], None] | None = None,
     on_stage: Callable[[str], None] | None = None,
+    matcher: Matcher | None = None,
 ) -> SequenceRun:
     """Feed the sequence through `LiveLocalizer` in batches of `ground_map.batch_size` frames
     (every submap localized as it appears), then finalize.
 
     Callbacks (all optional): `on_frames(done, total)` after each batch of frames,
     `on_submap(submap, event)` after each submap was localized, `on_stage(name)` when the final
-    offline pass starts.
+    offline pass starts. `matcher` replaces `match_submap` (e.g. a `MatchingCheckpoint`).
     """
     reader.require_odometry_without_gaps(cfg.ground_map.max_odometry_gap_s)
     started = time.perf_counter()
-    live = LiveLocalizer(aerial_map, cfg, reader.camera, runtime)
+    live = LiveLocalizer(aerial_map, cfg, reader.camera, runtime, matcher=matcher)
     batch = cfg.ground_map.batch_size
     n = len(reader)
     for start in range(0, n, batch):
