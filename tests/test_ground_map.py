@@ -184,3 +184,20 @@ def test_ground_mapping_stages_are_timed_when_recorded(tiny: Path) -> None:
     assert {"global descriptors", "segmentation", "segment descriptors", "observations", "tracking",
             "submaps"} <= set(times.seconds)
     assert times.calls["tracking"] == 4 and times.calls["segmentation"] == 1  # one batch, four frames
+
+
+def test_perceiving_a_batch_ahead_gives_the_plain_loops_submaps(tiny: Path, submaps) -> None:
+    """map_ground perceives the next batch in a second thread (`perceived_batches`); the submaps
+    are bitwise those of a plain add_frames loop over the same batches."""
+    reader = SequenceReader(tiny)
+    mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+    plain = []
+    for start in range(0, len(reader), CFG.ground_map.batch_size):
+        plain += mapper.add_frames([reader[i] for i in range(start, min(start + CFG.ground_map.batch_size, len(reader)))])
+    plain += mapper.finish()
+    assert len(plain) == len(submaps) >= 2
+    for a, b in zip(plain, submaps):
+        assert a.time == b.time and np.array_equal(a.T_odom_base, b.T_odom_base)
+        for name in a.primitives.__dataclass_fields__:
+            assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
+        assert torch.equal(a.frame_descriptors, b.frame_descriptors)

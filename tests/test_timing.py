@@ -53,3 +53,39 @@ def test_nothing_is_recorded_outside_a_recording_or_in_other_threads():
     with stage("after"):
         pass
     assert list(times.calls) == ["main"]
+
+
+def test_threads_in_a_copied_context_record_their_own_paths_into_one_table():
+    """What the ground mapper's perception thread does: stages opened there nest under the stage that
+    was open when its work was submitted, and never under what the main thread opened meanwhile."""
+    import contextvars
+
+    started, release = threading.Event(), threading.Event()
+
+    def worker() -> None:
+        with stage("perceive"):
+            started.set()
+            release.wait(5)
+            with stage("segmentation"):
+                pass
+
+    with record_stages() as times:
+        with stage("ground mapping"):
+            context = contextvars.copy_context()
+        t = threading.Thread(target=context.run, args=(worker,))
+        t.start()
+        started.wait(5)
+        with stage("tracking"):  # open in the main thread while the worker is inside "perceive"
+            release.set()
+            t.join()
+    assert set(times.calls) == {"ground mapping", "ground mapping/perceive", "ground mapping/perceive/segmentation",
+                                "tracking"}
+
+
+def test_a_new_recording_starts_its_paths_afresh():
+    with record_stages() as outer:
+        with stage("outer"):
+            with record_stages() as inner:
+                with stage("inner"):
+                    pass
+    assert list(inner.calls) == ["inner"] and list(outer.calls) == ["outer"]

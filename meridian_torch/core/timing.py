@@ -3,12 +3,15 @@
 Stages mark themselves with `with stage("affinity"):`. Outside `record_stages()` this costs two
 attribute lookups; inside, each stage adds its wall time and call count under its full name,
 the names of the stages around it joined by '/' ("localize/matching/affinity"), so a report
-shows where the time of a parent went. Recording is per thread (a context variable): a reader
-thread's work never lands in the main thread's table.
+shows where the time of a parent went. Recording follows the context (context variables): a
+thread's work lands in a table only when the thread runs in a copy of the recording context
+(`contextvars.copy_context().run`, as the ground mapper's prefetch thread does); each context
+keeps its own stack of open stages, so threads recording into one table never mix their paths.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,11 +27,12 @@ class StageTimes:
 
     seconds: dict[str, float] = field(default_factory=dict)
     calls: dict[str, int] = field(default_factory=dict)
-    _stack: list[str] = field(default_factory=list)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def add(self, path: str, seconds: float) -> None:
-        self.seconds[path] = self.seconds.get(path, 0.0) + seconds
-        self.calls[path] = self.calls.get(path, 0) + 1
+        with self._lock:  # stages of several threads may record into one table
+            self.seconds[path] = self.seconds.get(path, 0.0) + seconds
+            self.calls[path] = self.calls.get(path, 0) + 1
 
     def total(self, name: str) -> float:
         """Seconds of every stage called `name`, wherever it ran (summed over parents)."""
@@ -36,16 +40,18 @@ class StageTimes:
 
 
 _recorder: ContextVar[StageTimes | None] = ContextVar("meridian_stage_times", default=None)
+_open_path: ContextVar[str] = ContextVar("meridian_stage_path", default="")  # the open stages, "a/b"
 
 
 @contextmanager
 def record_stages(times: StageTimes | None = None) -> Iterator[StageTimes]:
     """Record every `stage` entered in this thread until the block ends."""
     times = StageTimes() if times is None else times
-    token = _recorder.set(times)
+    token, path_token = _recorder.set(times), _open_path.set("")  # paths start afresh in a new table
     try:
         yield times
     finally:
+        _open_path.reset(path_token)
         _recorder.reset(token)
 
 
@@ -56,11 +62,12 @@ def stage(name: str) -> Iterator[None]:
     if times is None:
         yield
         return
-    times._stack.append(name)
-    path = "/".join(times._stack)
+    parent = _open_path.get()
+    path = f"{parent}/{name}" if parent else name
+    token = _open_path.set(path)
     start = time.perf_counter()
     try:
         yield
     finally:
         times.add(path, time.perf_counter() - start)
-        times._stack.pop()
+        _open_path.reset(token)

@@ -20,7 +20,9 @@ with one nearest in time to the centre.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import contextvars
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +34,7 @@ from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame, SequenceReader
 from meridian_torch.mapping.config import PrimitiveConfig
-from meridian_torch.mapping.ground_observations import observe_frames
+from meridian_torch.mapping.ground_observations import FrameObservations, observe_frames
 from meridian_torch.mapping.ground_submaps import SubmapGeometry, SubmapTrigger, submap_primitives, thin_by_distance
 from meridian_torch.mapping.ground_tracking import SegmentTracker, TrackedSegment
 from meridian_torch.perception.config import active_backend_dict
@@ -41,7 +43,22 @@ from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescribe
 from meridian_torch.runtime import Runtime
 from meridian_torch.types import GroundSubmap
 
-__all__ = ["GroundMapper", "map_ground", "ground_map_config_dict"]
+__all__ = ["GroundMapper", "PerceivedFrames", "ground_map_config_dict", "map_ground", "perceived_batches"]
+
+
+@dataclass(frozen=True)
+class PerceivedFrames:
+    """A batch of frames after the stateless work (segmentation, descriptors, 3D observations),
+    ready for `GroundMapper.integrate`."""
+
+    images: torch.Tensor  # (B, 3, H, W) in [0, 1], for the global descriptors
+    T_odom_base: np.ndarray  # (B, 4, 4)
+    T_odom_camera: np.ndarray  # (B, 4, 4)
+    times: np.ndarray  # (B,)
+    observations: list[FrameObservations]
+
+    def __len__(self) -> int:
+        return len(self.times)
 
 
 @dataclass
@@ -99,10 +116,14 @@ class GroundMapper:
 
     def add_frames(self, frames: Sequence[Frame]) -> list[GroundSubmap]:
         """Process frames in time order, segmenting them as one batch; returns completed submaps."""
-        if self._finished:
-            raise RuntimeError("GroundMapper.finish() was called; create a new mapper for a new sequence")
         if not frames:
             return []
+        return self.integrate(self.perceive(frames))
+
+    def perceive(self, frames: Sequence[Frame]) -> PerceivedFrames:
+        """The stateless part of `add_frames`: segmentation, segment descriptors and 3D observations
+        of a batch. It reads no mapper state, so the next batch can be perceived (in another thread)
+        while this one is integrated."""
         device, dtype = self.runtime.device, self.runtime.dtype
         with torch.inference_mode():
             images = torch.from_numpy(np.stack([f.rgb for f in frames])).to(device)
@@ -111,12 +132,22 @@ class GroundMapper:
             T_odom_base = np.stack([np.asarray(f.T_odom_base, dtype=np.float64) for f in frames])
             T_odom_camera = T_odom_base @ self._T_base_camera
             times = np.array([f.timestamp for f in frames])
-            if self.frames and times[0] <= self.frames[-1].time:
-                raise ValueError(f"frame time {times[0]} is not after the previous frame's {self.frames[-1].time}")
+            observations = observe_frames(images, depths, T_odom_camera, times, self.segmenter, self.describer,
+                                          self.camera, self.cfg.observation)
+        return PerceivedFrames(images, T_odom_base, T_odom_camera, times, observations)
 
+    def integrate(self, batch: PerceivedFrames) -> list[GroundSubmap]:
+        """The stateful part of `add_frames`: global descriptors, tracking and submaps of a
+        perceived batch (batches in time order); returns the completed submaps."""
+        if self._finished:
+            raise RuntimeError("GroundMapper.finish() was called; create a new mapper for a new sequence")
+        images, T_odom_base, T_odom_camera, times = batch.images, batch.T_odom_base, batch.T_odom_camera, batch.times
+        if self.frames and times[0] <= self.frames[-1].time:
+            raise ValueError(f"frame time {times[0]} is not after the previous frame's {self.frames[-1].time}")
+        with torch.inference_mode():
             # global descriptors only every frame_descriptor_dist_m of camera travel
             wanted, last = [], self._last_descriptor_xyz
-            for b in range(len(frames)):
+            for b in range(len(batch)):
                 xyz = T_odom_camera[b, :3, 3]
                 if last is None or np.linalg.norm(xyz - last) >= self.cfg.frame_descriptor_dist_m:
                     wanted.append(b)
@@ -127,10 +158,8 @@ class GroundMapper:
                 with stage("global descriptors"):
                     global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32)
 
-            observations = observe_frames(images, depths, T_odom_camera, times, self.segmenter, self.describer,
-                                          self.camera, self.cfg.observation)
             submaps = []
-            for b, obs in enumerate(observations):
+            for b, obs in enumerate(batch.observations):
                 path = 0.0
                 if self.frames:
                     step = np.linalg.norm(T_odom_base[b, :3, 3] - self.frames[-1].T_odom_base[:3, 3])
@@ -167,14 +196,15 @@ class GroundMapper:
         `finish`: all submaps. Frames inside an odometry gap are refused before any work."""
         reader.require_odometry_without_gaps(self.cfg.max_odometry_gap_s, n_frames)
         n = len(reader) if n_frames is None else min(n_frames, len(reader))
-        batch = self.cfg.batch_size
         submaps: list[GroundSubmap] = []
         if progress is not None:
             progress(0, n)
-        for start in range(0, n, batch):
-            submaps += self.add_frames([reader[i] for i in range(start, min(start + batch, n))])
+        done = 0
+        for batch in perceived_batches(self, reader, n):
+            submaps += self.integrate(batch)
+            done += len(batch)
             if progress is not None:
-                progress(min(start + batch, n), n)
+                progress(done, n)
         return submaps + self.finish()
 
     # ---------------------------------------------------------------------------- submaps
@@ -229,6 +259,28 @@ class GroundMapper:
             cand = np.flatnonzero(with_desc)
             idx = cand[[int(np.argmin(np.abs(times[cand] - centre.time)))]]
         return torch.stack([self.frames[i].descriptor for i in idx])
+
+
+def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Iterator[PerceivedFrames]:
+    """The first `n_frames` frames of `reader` in batches of `ground_map.batch_size`, read and
+    perceived one batch ahead in a second thread while the caller integrates the current one (the
+    tracker and submaps are serial; this keeps the other core busy meanwhile). The batches and
+    their contents are those of the plain loop; the thread records its stages into the caller's
+    stage table."""
+    starts = list(range(0, n_frames, mapper.cfg.batch_size))
+
+    def perceive(start: int) -> PerceivedFrames:
+        with stage("read frames"):
+            frames = [reader[i] for i in range(start, min(start + mapper.cfg.batch_size, n_frames))]
+        return mapper.perceive(frames)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as pool:
+        ahead = pool.submit(contextvars.copy_context().run, perceive, starts[0]) if starts else None
+        for k in range(len(starts)):
+            batch = ahead.result()
+            if k + 1 < len(starts):
+                ahead = pool.submit(contextvars.copy_context().run, perceive, starts[k + 1])
+            yield batch
 
 
 def ground_map_config_dict(cfg: MeridianConfig) -> dict[str, Any]:

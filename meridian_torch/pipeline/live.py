@@ -31,7 +31,7 @@ from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import Frame
-from meridian_torch.mapping.ground_map import GroundMapper
+from meridian_torch.mapping.ground_map import GroundMapper, PerceivedFrames
 from meridian_torch.runtime import Runtime
 from meridian_torch.types import GroundSubmap
 
@@ -95,13 +95,22 @@ class LiveLocalizer:
             raise ValueError("add_frames needs at least one frame")
         for frame in frames:
             self._check(frame)
-        self.localizer.add_frames(np.array([f.timestamp for f in frames]), np.stack([f.T_odom_base for f in frames]))
         started = time.perf_counter()
         with stage("ground mapping"):
-            new = self.mapper.add_frames(frames)
+            batch = self.mapper.perceive(frames)
         self.mapping_seconds += time.perf_counter() - started
-        self._n_frames += len(frames)
-        return self._localize(new, frames[-1].timestamp)
+        return self.add_perceived(batch)
+
+    def add_perceived(self, batch: PerceivedFrames) -> LiveEstimate:
+        """Frames the mapper already perceived (`GroundMapper.perceive`, e.g. one batch ahead in
+        another thread, `perceived_batches`); the estimate is that after the last."""
+        self.localizer.add_frames(batch.times, batch.T_odom_base)
+        started = time.perf_counter()
+        with stage("ground mapping"):
+            new = self.mapper.integrate(batch)
+        self.mapping_seconds += time.perf_counter() - started
+        self._n_frames += len(batch)
+        return self._localize(new, float(batch.times[-1]))
 
     def finish(self) -> LocalizationResult:
         """End of the drive: the last submap, then the final offline pass over every frame (the
