@@ -262,12 +262,12 @@ def test_pruned_solve_equals_the_full_dense_solve() -> None:
 def test_a_failed_clipper_solve_falls_back_to_the_greedy_clique(monkeypatch) -> None:
     from meridian_torch.matching.clipper import ClipperResult
 
-    def empty_solve(M, *args, **kwargs):
-        n = M.shape[-1]
-        z = torch.zeros(1, dtype=M.dtype)
+    def empty_solve(n, edges, *args, **kwargs):
+        dtype = edges[2].dtype
+        z = torch.zeros(1, dtype=dtype)
         return ClipperResult(
             inliers=torch.zeros(1, n, dtype=torch.bool),
-            u=torch.zeros(1, n, dtype=M.dtype),
+            u=torch.zeros(1, n, dtype=dtype),
             score=z,
             objective=z,
             iterations=torch.zeros(1, dtype=torch.int64),
@@ -275,7 +275,7 @@ def test_a_failed_clipper_solve_falls_back_to_the_greedy_clique(monkeypatch) -> 
             converged=torch.ones(1, dtype=torch.bool),
         )
 
-    monkeypatch.setattr(consistency, "solve_clipper", empty_solve)
+    monkeypatch.setattr(consistency, "solve_clipper_sparse", empty_solve)
     c = _pool()
     sel = select_inliers(c, CFG)
     expected = torch.zeros(len(c), dtype=torch.bool)

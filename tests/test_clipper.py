@@ -350,3 +350,37 @@ def test_dense_problem_never_collapses_to_the_empty_set() -> None:
     assert bool((M[chosen][:, chosen] > 0).all())  # a clique of the consistency graph
     gentle = solve_clipper(M, generator=torch.Generator().manual_seed(0), cfg=ClipperConfig(initial_d=0.5))
     assert float(result.score[0]) >= 0.99 * float(gentle.score[0])
+
+
+@pytest.mark.parametrize("rounding", ["clipper", "support", "densest"])
+@pytest.mark.parametrize("seed", range(4))
+def test_sparse_solve_equals_the_dense_solve(seed: int, rounding: str) -> None:
+    """The edge-list solver takes the dense solver's steps: same inliers, iterations and penalty
+    updates, the same u and score up to summation order."""
+    from meridian_torch.matching.clipper import solve_clipper_sparse
+
+    n = [60, 150, 300, 500][seed]
+    M, truth = planted_clique(n, 8 + seed, seed, p=0.03)  # a clique of unit affinities
+    cfg = ClipperConfig(rounding=rounding)
+    dense = solve_clipper(M, generator=torch.Generator().manual_seed(seed), cfg=cfg)
+    i, j = torch.nonzero(torch.triu(M, 1) > 0, as_tuple=True)
+    sparse = solve_clipper_sparse(n, (i, j, M[i, j]), generator=torch.Generator().manual_seed(seed), cfg=cfg)
+    assert torch.equal(sparse.inliers, dense.inliers)
+    assert torch.equal(sparse.iterations, dense.iterations) and torch.equal(sparse.penalty_updates, dense.penalty_updates)
+    torch.testing.assert_close(sparse.u, dense.u, rtol=0, atol=1e-10)
+    torch.testing.assert_close(sparse.score, dense.score, rtol=1e-12, atol=0)
+    assert bool(sparse.inliers[0][truth].all())  # and it finds the planted clique
+    assert_cliques(sparse, M)
+
+
+def test_sparse_solve_of_a_graph_without_edges_and_bad_edges() -> None:
+    from meridian_torch.matching.clipper import solve_clipper_sparse
+
+    empty = (torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64))
+    result = solve_clipper_sparse(5, empty, generator=torch.Generator().manual_seed(0))
+    dense = solve_clipper(torch.eye(5, dtype=torch.float64), generator=torch.Generator().manual_seed(0))
+    assert torch.equal(result.inliers, dense.inliers) and int(result.inliers.sum()) == 1
+    with pytest.raises(ValueError, match="i < j < n"):
+        solve_clipper_sparse(3, (torch.tensor([2]), torch.tensor([1]), torch.tensor([0.5], dtype=torch.float64)))
+    with pytest.raises(ValueError, match="finite and positive"):
+        solve_clipper_sparse(3, (torch.tensor([0]), torch.tensor([1]), torch.tensor([-0.5], dtype=torch.float64)))

@@ -9,6 +9,7 @@ graph. Only torch is needed for the solve; the exact "densest" rounding imports 
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ from torch import Tensor
 
 from meridian_torch.matching.config import ClipperConfig
 
-__all__ = ["ClipperResult", "solve_clipper", "inlier_indices"]
+__all__ = ["ClipperResult", "dense_block", "inlier_indices", "solve_clipper", "solve_clipper_sparse"]
 
 # Tolerances below this many machine epsilons (times sqrt(n) and the objective's scale) cannot be
 # met in float32, where the reference's 1e-9 would make every inner loop run to its cap.
@@ -165,6 +166,94 @@ def solve_clipper(
     )
 
 
+def dense_block(n: int, edges: tuple[Tensor, Tensor, Tensor], members: Tensor) -> Tensor:
+    """The symmetric (k, k) affinity among `members` (k of n vertices) from sparse upper-triangle
+    edges (i, j, value), i < j; zero diagonal."""
+    i, j, v = edges
+    local = torch.full((n,), -1, dtype=torch.int64, device=v.device)
+    local[members] = torch.arange(len(members), device=v.device)
+    li, lj = local[i], local[j]
+    keep = (li >= 0) & (lj >= 0)
+    W = torch.zeros(len(members), len(members), dtype=v.dtype, device=v.device)
+    W[li[keep], lj[keep]] = v[keep]
+    return W + W.T
+
+
+@torch.no_grad()
+def solve_clipper_sparse(
+    n: int,
+    edges: tuple[Tensor, Tensor, Tensor],
+    *,
+    generator: torch.Generator | None = None,
+    cfg: ClipperConfig | None = None,
+) -> ClipperResult:
+    """`solve_clipper` for one problem given by its sparse affinity, never forming n x n matrices.
+
+    Args:
+        n: number of vertices.
+        edges: (i, j, value) with i < j < n: the positive off-diagonal entries of a symmetric M
+            whose diagonal is one; the constraint graph is M's pattern (C = M > 0).
+        generator, cfg: as for `solve_clipper` (the diagonal is one whatever `cfg.diagonal` says).
+
+    Each mat-vec costs O(edges + n) (`_SparseProblem`) instead of O(n^2); the start vector, steps
+    and rounding are those of `solve_clipper` on the dense M (rounding works on the final support
+    only, densified), so the result is the same up to floating-point summation order. Returns a
+    `ClipperResult` with B = 1.
+    """
+    cfg = ClipperConfig() if cfg is None else cfg
+    i, j, v = edges
+    if not v.is_floating_point():
+        raise ValueError(f"edge values must be floating point, got {v.dtype}")
+    dtype, device = v.dtype, v.device
+    if len(i) and not (bool((i < j).all()) and int(i.min()) >= 0 and int(j.max()) < n):
+        raise ValueError(f"edges must have 0 <= i < j < n = {n}")
+    if len(v) and not (bool(torch.isfinite(v).all()) and bool((v > 0).all())):
+        raise ValueError("edge values must be finite and positive")
+    if n == 0:
+        return _empty_result(1, 0, dtype, device)
+    index = torch.stack([torch.cat([i, j]), torch.cat([j, i])])
+    with warnings.catch_warnings():  # torch's notes that CSR is "beta" and unchecked: indices are checked above
+        warnings.simplefilter("ignore", UserWarning)
+        M_off = torch.sparse_coo_tensor(index, torch.cat([v, v]), (n, n)).coalesce().to_sparse_csr()
+        pattern = torch.sparse_coo_tensor(index, torch.ones(2 * len(v), dtype=dtype, device=device),
+                                          (n, n)).coalesce().to_sparse_csr()
+    diag = torch.ones((1, n), dtype=dtype, device=device)
+    unpenalized = _SparseProblem(M_off, pattern, diag, torch.zeros(1, dtype=dtype, device=device))
+
+    if generator is None:
+        generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    u = torch.rand((1, n), generator=generator, device=generator.device, dtype=dtype).to(device)
+    if cfg.rescale_u0:
+        u = unpenalized.mv(u)
+    u = _normalize(u)
+    d = _initial_penalty(unpenalized.mv(u), unpenalized.cb_mv(u), u, cfg)
+    state = _homotopy(_SparseProblem(M_off, pattern, diag, d.clone()), d, u, torch.ones_like(u), cfg)
+
+    # Rounding looks only at entries with u > 0: densify that support.
+    members = torch.nonzero(state.u[0] > 0).flatten()
+    W = dense_block(n, edges, members)
+    W.diagonal().fill_(1.0)
+    Cb = (W <= 0).to(dtype)
+    Cb.diagonal().zero_()
+    sub_diag = torch.ones((1, len(members)), dtype=dtype, device=device)
+    chosen = _round(W[None], sub_diag, Cb[None], state.u[:, members], state.objective,
+                    torch.ones((1, len(members)), dtype=torch.bool, device=device), cfg)
+    inliers = torch.zeros((1, n), dtype=torch.bool, device=device)
+    inliers[0, members[chosen[0]]] = True
+    x = chosen.to(dtype)
+    size = x.sum(-1)
+    score = (x * _affinity_mv(W[None], sub_diag, x)).sum(-1) / size.clamp_min(1)
+    return ClipperResult(
+        inliers=inliers,
+        u=state.u,
+        score=score,
+        objective=state.objective,
+        iterations=state.iterations,
+        penalty_updates=state.penalty_updates,
+        converged=state.converged,
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # input handling
 
@@ -283,6 +372,47 @@ def _normalize(u: Tensor) -> Tensor:
     return u / norm.clamp_min(torch.finfo(u.dtype).tiny)
 
 
+class _DenseProblem:
+    """The penalised matrix Md = A - d Cb of a batch, held densely and updated in place when d grows,
+    so each objective evaluation is one batched mat-vec and each penalty increase one n x n pass."""
+
+    def __init__(self, Md: Tensor, Cb: Tensor) -> None:
+        self.Md, self.Cb = Md, Cb
+
+    def mv(self, u: Tensor) -> Tensor:
+        return _bmv(self.Md, u)
+
+    def cb_mv(self, u: Tensor) -> Tensor:
+        return _bmv(self.Cb, u)
+
+    def select(self, keep: Tensor) -> "_DenseProblem":
+        return _DenseProblem(self.Md[keep], self.Cb[keep])
+
+    def penalize(self, increment: Tensor) -> None:
+        self.Md.addcmul_(self.Cb, increment[:, None, None], value=-1.0)
+
+
+class _SparseProblem:
+    """One problem (B = 1) from its sparse affinity M (CSR, no diagonal), never densified: with P
+    the pattern of M, the forbidden pairs are Cb = 1 - I - P, so Cb u = sum(u) - u - P u and
+    Md u = M u + diag u - d Cb u cost O(nnz + n) instead of O(n^2)."""
+
+    def __init__(self, M_off: Tensor, pattern: Tensor, diag: Tensor, d: Tensor) -> None:
+        self.M_off, self.pattern, self.diag, self.d = M_off, pattern, diag, d
+
+    def cb_mv(self, u: Tensor) -> Tensor:
+        return u.sum(-1, keepdim=True) - u - (self.pattern @ u.T).T
+
+    def mv(self, u: Tensor) -> Tensor:
+        return (self.M_off @ u.T).T + self.diag * u - self.d[:, None] * self.cb_mv(u)
+
+    def select(self, keep: Tensor) -> "_SparseProblem":
+        return self  # one problem: selecting it keeps it, and an empty selection is never used
+
+    def penalize(self, increment: Tensor) -> None:
+        self.d = self.d + increment
+
+
 def _penalty_ratio(Au: Tensor, Cbu: Tensor, u: Tensor, eps: float) -> tuple[Tensor, Tensor]:
     """Mean of |(Au)_i / (Cb u)_i| over the support entries touching a forbidden pair.
 
@@ -296,31 +426,36 @@ def _penalty_ratio(Au: Tensor, Cbu: Tensor, u: Tensor, eps: float) -> tuple[Tens
     return ratio.sum(-1) / count.clamp_min(1).to(Au.dtype), count > 0
 
 
+def _initial_penalty(Au: Tensor, Cbu: Tensor, u: Tensor, cfg: ClipperConfig) -> Tensor:
+    """The starting penalty d (B,): CLIPPER's ratio at the start vector, or `cfg.initial_d`."""
+    if cfg.initial_d is None:
+        return _penalty_ratio(Au, Cbu, u, cfg.eps)[0]
+    return torch.full((u.shape[0],), cfg.initial_d, dtype=u.dtype, device=u.device)
+
+
 def _solve(M: Tensor, diag: Tensor, Cb: Tensor, u: Tensor, validf: Tensor, cfg: ClipperConfig) -> _SolveState:
-    """Penalty homotopy around batched projected-gradient ascent (clipper.md section 2)."""
+    """Penalty homotopy around batched projected-gradient ascent (clipper.md section 2), dense."""
+    d = _initial_penalty(_affinity_mv(M, diag, u), _bmv(Cb, u), u, cfg)
+    Md = M.clone()
+    Md.addcmul_(Cb, d[:, None, None], value=-1.0)
+    Md.diagonal(0, -2, -1).copy_(diag)
+    return _homotopy(_DenseProblem(Md, Cb), d, u, validf, cfg)
+
+
+def _homotopy(problem: "_DenseProblem | _SparseProblem", d: Tensor, u: Tensor, validf: Tensor,
+              cfg: ClipperConfig) -> _SolveState:
+    """The penalty loop on a problem whose Md already includes the penalty `d`."""
     B, n = u.shape
     dtype, device = u.dtype, u.device
     noise = _NOISE_EPS_FACTOR * torch.finfo(dtype).eps * math.sqrt(n)
     tol_u = max(cfg.tol_u, noise)
-
-    if cfg.initial_d is None:
-        d, _ = _penalty_ratio(_affinity_mv(M, diag, u), _bmv(Cb, u), u, cfg.eps)
-    else:
-        d = torch.full((B,), cfg.initial_d, dtype=dtype, device=device)
     objective = torch.zeros(B, dtype=dtype, device=device)
     iterations = torch.zeros(B, dtype=torch.int64, device=device)
     penalty_updates = torch.zeros(B, dtype=torch.int64, device=device)
-
-    # The penalised matrix M_d = A - d Cb is kept and updated in place when d grows, so each
-    # objective evaluation is one mat-vec and each penalty increase one fused n x n pass.
-    Md = M.clone()
-    Md.addcmul_(Cb, d[:, None, None], value=-1.0)
-    Md.diagonal(0, -2, -1).copy_(diag)
-    live = torch.arange(B, device=device)  # problems still running, rows of Md and Cb_l
-    Cb_l = Cb
+    live = torch.arange(B, device=device)  # problems still running, the rows of `problem`
     for _ in range(cfg.max_outer_iterations):
-        u_l, g_l, F_l, steps = _ascend(Md, u[live], validf[live], cfg, tol_u, noise)
-        Cbu = _bmv(Cb_l, u_l)
+        u_l, g_l, F_l, steps = _ascend(problem, u[live], validf[live], cfg, tol_u, noise)
+        Cbu = problem.cb_mv(u_l)
         d_l = d[live]
         ratio, violated = _penalty_ratio(g_l + d_l[:, None] * Cbu, Cbu, u_l, cfg.eps)
         u[live] = u_l
@@ -330,10 +465,10 @@ def _solve(M: Tensor, diag: Tensor, Cb: Tensor, u: Tensor, validf: Tensor, cfg: 
         penalty_updates[live] += violated.to(torch.int64)
         d[live] = d_l + torch.where(violated, ratio, torch.zeros_like(ratio))
         if not bool(violated.all()):
-            live, Md, Cb_l, ratio = live[violated], Md[violated], Cb_l[violated], ratio[violated]
+            live, problem, ratio = live[violated], problem.select(violated), ratio[violated]
             if live.numel() == 0:
                 break
-        Md.addcmul_(Cb_l, ratio[:, None, None], value=-1.0)
+        problem.penalize(ratio)
     converged = torch.ones(B, dtype=torch.bool, device=device)
     converged[live] = False
     return _SolveState(
@@ -342,7 +477,8 @@ def _solve(M: Tensor, diag: Tensor, Cb: Tensor, u: Tensor, validf: Tensor, cfg: 
 
 
 def _ascend(
-    Md: Tensor, u: Tensor, validf: Tensor, cfg: ClipperConfig, tol_u: float, noise: float
+    problem: "_DenseProblem | _SparseProblem", u: Tensor, validf: Tensor, cfg: ClipperConfig, tol_u: float,
+    noise: float,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Projected gradient ascent on u'Md u for a fixed penalty, every problem of the batch at once.
 
@@ -353,11 +489,11 @@ def _ascend(
     (u, g = Md u, F = u'Md u, steps per problem).
     """
     K = u.shape[0]
-    g = _bmv(Md, u)
+    g = problem.mv(u)
     F = (u * g).sum(-1)
     steps = torch.zeros(K, dtype=torch.int64, device=u.device)
     live = torch.arange(K, device=u.device)  # problems still iterating, into the batch
-    Md_l, u_l, g_l, F_l, v_l = Md, u, g, F, validf
+    p_l, u_l, g_l, F_l, v_l = problem, u, g, F, validf
     for _ in range(cfg.max_inner_iterations):
         # Float32 cannot resolve the reference's 1e-9 on an objective of size ~F.
         slack = torch.clamp(noise * (1.0 + F_l.abs()), min=cfg.eps)
@@ -367,7 +503,7 @@ def _ascend(
         for _ in range(cfg.max_line_search_iterations):
             # Orthant, then sphere; padded entries are held at zero.
             cand = _normalize(torch.clamp(u_l + alpha[:, None] * g_l, min=0.0) * v_l)
-            g_c = _bmv(Md_l, cand)
+            g_c = p_l.mv(cand)
             F_c = (cand * g_c).sum(-1)
             s = searching[:, None]
             u_n = torch.where(s, cand, u_n)
@@ -391,7 +527,7 @@ def _ascend(
             u[live[fin]] = u_l[fin]
             g[live[fin]] = g_l[fin]
             F[live[fin]] = F_l[fin]
-            live, Md_l, v_l = live[running], Md_l[running], v_l[running]
+            live, p_l, v_l = live[running], p_l.select(running), v_l[running]
             u_l, g_l, F_l = u_l[running], g_l[running], F_l[running]
             if live.numel() == 0:
                 break
