@@ -278,6 +278,19 @@ class BackendConfig(StrictModel):
         "aerial map (grown by sanity_off_map_margin_m) is reported as not localized"
     )
     sanity_off_map_margin_m: float = Field(default=50.0, ge=0, description="sanity gate: margin around the map")
+    sanity_inlier_residual_m: float = Field(
+        default=10.0, gt=0, description="sanity gate: a loop closure the final trajectory misses by more (5 prior sigmas) ..."
+    )
+    sanity_inlier_residual_deg: float = Field(default=25.0, gt=0, description="... or by more than this yaw")
+    sanity_max_inlier_disagreement: float = Field(
+        default=0.5, ge=0, le=1, description="sanity gate: a final trajectory missing more of its own loop closures "
+        "is reported as not localized"
+    )
+    sanity_heading_window_m: float = Field(default=100.0, gt=0, description="sanity gate: path window of the heading test")
+    sanity_max_heading_bend_deg: float = Field(
+        default=60.0, gt=0, description="sanity gate: a final trajectory turning the odometry's heading by more within "
+        "the window (far beyond any odometry drift) is reported as not localized"
+    )
 
 
 class EvaluationConfig(StrictModel):

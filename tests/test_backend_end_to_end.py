@@ -9,11 +9,14 @@ descriptors of the patches it lies in, so place recognition works as it would on
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meridian_torch.backend.localizer import Localizer
 from meridian_torch.config import MeridianConfig
@@ -166,8 +169,6 @@ def test_localizes_with_clipper_matching_on_a_full_loop() -> None:
 
 def test_a_trajectory_off_the_map_is_reported_as_not_localized() -> None:
     """The same solution, judged against a map moved 10 km away: the sanity gate refuses it."""
-    import dataclasses
-
     from meridian_torch.backend.sanity import off_map_fraction
 
     aerial, gt, odometry, submaps = make_world(n_frames=140, spacing_m=16.0)
@@ -190,3 +191,66 @@ def test_off_map_fraction_counts_positions_outside_every_grown_patch() -> None:
     xy = np.array([[10.0, 10.0], [89.0, 59.0], [95.0, 30.0], [-4.0, 30.0], [200.0, 0.0]])
     assert off_map_fraction(xy, bounds, 0.0) == pytest.approx(3 / 5)
     assert off_map_fraction(xy, bounds, 5.0) == pytest.approx(1 / 5)
+
+
+def _se2_path(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    T = np.zeros((len(x), 3, 3))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = np.cos(yaw), -np.sin(yaw), x
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = np.sin(yaw), np.cos(yaw), y
+    T[:, 2, 2] = 1.0
+    return T
+
+
+@settings(max_examples=20, deadline=None)
+@given(yaw=st.floats(-3.1, 3.1), tx=st.floats(-1e4, 1e4), drift_deg_per_100m=st.floats(0.0, 20.0))
+def test_heading_bend_is_what_the_solution_turns_beyond_the_odometry(yaw: float, tx: float,
+                                                                     drift_deg_per_100m: float) -> None:
+    """A rigid correction of the odometry bends nothing; a correction growing along the path
+    bends by its growth within the window, whatever the rigid part."""
+    from meridian_torch.backend.sanity import heading_bend_deg
+
+    s = np.arange(0.0, 400.0, 1.0)  # 1 m steps along a winding path
+    odom = _se2_path(*np.cumsum([np.cos(0.01 * s), np.sin(0.01 * s)], axis=1), 0.01 * s)
+    rigid = _se2_path(np.array([tx]), np.array([0.0]), np.array([yaw]))[0]
+    assert heading_bend_deg(rigid @ odom, odom, 100.0) == pytest.approx(0.0, abs=1e-6)
+    turn = np.radians(drift_deg_per_100m) * s / 100.0
+    bent = rigid @ odom @ _se2_path(0 * s, 0 * s, turn)
+    assert heading_bend_deg(bent, odom, 100.0) == pytest.approx(drift_deg_per_100m, rel=0.02, abs=1e-6)
+
+
+def test_inlier_disagreement_counts_loop_closures_the_solution_misses() -> None:
+    from meridian_torch.backend.sanity import inlier_disagreement
+
+    T = _se2_path(np.arange(6.0) * 10, np.zeros(6), np.zeros(6))
+    assert inlier_disagreement(T, T, 10.0, 25.0) == 0.0
+    moved = T.copy()
+    moved[:2, 0, 2] += 11.0  # two missed by 11 m
+    turned = moved @ _se2_path(np.zeros(6), np.zeros(6), np.radians([0, 0, 30, 0, 0, 0]))  # one by 30 deg
+    assert inlier_disagreement(T, turned, 10.0, 25.0) == pytest.approx(3 / 6)
+
+
+def test_a_trajectory_that_turns_away_from_the_odometry_is_reported_as_not_localized(monkeypatch) -> None:
+    """The same run with its final solution bent by 90 deg a third of the way: the sanity gate
+    refuses it, naming the heading and the missed loop closures (those of the last two thirds)."""
+    from meridian_torch.backend import localizer as localizer_module
+
+    aerial, gt, odometry, submaps = make_world(n_frames=140, spacing_m=16.0)
+    loc = Localizer(aerial, _config("particles"), odometry, gt.timestamps, seed=0)
+    for s in submaps:
+        loc.add_submap(s)
+    real = localizer_module.optimize_pose_graph
+
+    def bent(*args, **kwargs):
+        sol = real(*args, **kwargs)
+        T = sol.T_world_base.copy()
+        third = len(T) // 3
+        pivot = T[third].copy()
+        turn = _se2_path(np.zeros(1), np.zeros(1), np.array([np.pi / 2]))[0]
+        T[third:] = pivot @ turn @ np.linalg.inv(pivot) @ T[third:]
+        return dataclasses.replace(sol, T_world_base=T)
+
+    monkeypatch.setattr(localizer_module, "optimize_pose_graph", bent)
+    result = loc.finalize()
+    assert not result.localized and np.isnan(result.T_world_base).all()
+    assert "turns the odometry's heading by 90 deg" in result.rejected_because
+    assert "misses" in result.rejected_because and "of its own loop closures" in result.rejected_because

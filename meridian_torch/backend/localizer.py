@@ -380,16 +380,20 @@ class Localizer:
         self, inliers: LoopClosureCandidates, n_nodes: int, covariance: bool | Literal["last"] = False
     ) -> PoseGraphSolution:
         start = time.perf_counter()
-        nodes = np.array([self._node_of(float(t)) for t in inliers.time], dtype=np.int64)
-        # Move each measurement from the submap time to its node's frame time along the odometry.
-        T_world_odom = inliers.T_world_base.numpy() @ np.linalg.inv(inliers.T_odom_base.numpy())
-        priors = T_world_odom @ self._odom_se2[nodes]
+        nodes, priors = self._prior_poses(inliers)
         with stage("pose graph"):
             sol = optimize_pose_graph(
                 self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance
             )
         self._timer.add("pose_graph", start)
         return sol
+
+    def _prior_poses(self, inliers: LoopClosureCandidates) -> tuple[np.ndarray, np.ndarray]:
+        """Each loop closure's node (frame nearest its submap's time) and the planar pose it
+        measures there: the measurement moved from the submap time to the node along the odometry."""
+        nodes = np.array([self._node_of(float(t)) for t in inliers.time], dtype=np.int64)
+        T_world_odom = inliers.T_world_base.numpy() @ np.linalg.inv(inliers.T_odom_base.numpy())
+        return nodes, T_world_odom @ self._odom_se2[nodes]
 
     def _anchor(self, inliers: LoopClosureCandidates, n_nodes: int, available_time: float) -> None:
         """Optimize the graph up to frame n_nodes - 1 on these inliers; its last pose anchors the
@@ -569,8 +573,11 @@ class Localizer:
                     best = (self._optimize(inliers2, n), inliers2)
         rejected: list[str] = []
         if best is not None:
-            rejected = sanity_problems(lift_se2(best[0].T_world_base, self.T_odom_base), self.aerial_map.patches.bounds_xy,
-                                       b.sanity_off_map_margin_m, b.sanity_max_off_map_fraction)
+            sol, inl = best
+            nodes, measured = self._prior_poses(inl)
+            rejected = sanity_problems(lift_se2(sol.T_world_base, self.T_odom_base), self.aerial_map.patches.bounds_xy, b,
+                                       T_solution_se2=sol.T_world_base, T_odom_se2=self._odom_se2,
+                                       inlier_nodes=nodes, T_inlier_se2=measured)
         localized = best is not None and not rejected
         if localized:
             inliers = best[1]
