@@ -26,7 +26,7 @@ from torch import Tensor
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.se2 import se2_inverse, wrap_angle
-from meridian_torch.matching.clipper import dense_block, solve_clipper_sparse
+from meridian_torch.matching.clipper import Edges, dense_block, restrict_edges, solve_clipper_sparse
 
 __all__ = [
     "Edges",
@@ -116,9 +116,6 @@ def consistency_affinity(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor
     M = M + M.T
     M.diagonal().fill_(1.0)
     return M
-
-
-Edges = tuple[Tensor, Tensor, Tensor]  # (i, j, value) with i < j: the non-zero off-diagonal affinities
 
 
 def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
@@ -248,12 +245,7 @@ def _solve(
     """CLIPPER on the candidates `index` (sorted) from the sparse edges; (selected indices, density).
     The consistency graph is sparse (candidates agree with few others), so the solve works on the
     edges (`solve_clipper_sparse`: O(edges) per step instead of O(k^2) for k candidates)."""
-    local = torch.full((n,), -1, dtype=torch.int64)
-    local[index] = torch.arange(len(index))
-    i, j, v = edges
-    li, lj = local[i], local[j]
-    keep = (li >= 0) & (lj >= 0)
-    result = solve_clipper_sparse(len(index), (li[keep], lj[keep], v[keep]), generator=generator, cfg=cfg.clipper)
+    result = solve_clipper_sparse(len(index), restrict_edges(n, edges, index), generator=generator, cfg=cfg.clipper)
     return index[result.inliers[0]], float(result.score[0])
 
 

@@ -18,7 +18,8 @@ from torch import Tensor
 
 from meridian_torch.matching.config import ClipperConfig
 
-__all__ = ["ClipperResult", "dense_block", "inlier_indices", "solve_clipper", "solve_clipper_sparse"]
+__all__ = ["ClipperResult", "Edges", "dense_block", "inlier_indices", "restrict_edges", "solve_clipper",
+           "solve_clipper_sparse"]
 
 # Tolerances below this many machine epsilons (times sqrt(n) and the objective's scale) cannot be
 # met in float32, where the reference's 1e-9 would make every inner loop run to its cap.
@@ -152,9 +153,16 @@ def solve_clipper(
 
     state = _solve(M, diag, Cb, u, validf, cfg)
     inliers = _round(M, diag, Cb, state.u, state.objective, valid, cfg)
-    x = inliers.to(dtype)
-    size = x.sum(-1)
-    score = (x * _affinity_mv(M, diag, x)).sum(-1) / size.clamp_min(1)
+    return _result(state, inliers, _density(M, diag, inliers))
+
+
+def _density(M: Tensor, diag: Tensor, chosen: Tensor) -> Tensor:
+    """(B,) x'Ax / x'x of the chosen sets (A = M with diagonal `diag`); 0 for an empty set."""
+    x = chosen.to(M.dtype)
+    return (x * _affinity_mv(M, diag, x)).sum(-1) / x.sum(-1).clamp_min(1)
+
+
+def _result(state: _SolveState, inliers: Tensor, score: Tensor) -> ClipperResult:
     return ClipperResult(
         inliers=inliers,
         u=state.u,
@@ -166,23 +174,32 @@ def solve_clipper(
     )
 
 
-def dense_block(n: int, edges: tuple[Tensor, Tensor, Tensor], members: Tensor) -> Tensor:
-    """The symmetric (k, k) affinity among `members` (k of n vertices) from sparse upper-triangle
-    edges (i, j, value), i < j; zero diagonal."""
+Edges = tuple[Tensor, Tensor, Tensor]  # (i, j, value), i < j: the positive off-diagonal entries
+
+
+def restrict_edges(n: int, edges: Edges, members: Tensor) -> Edges:
+    """The edges among `members` (k of n vertices, sorted), renumbered 0..k-1 in their order."""
     i, j, v = edges
     local = torch.full((n,), -1, dtype=torch.int64, device=v.device)
     local[members] = torch.arange(len(members), device=v.device)
     li, lj = local[i], local[j]
     keep = (li >= 0) & (lj >= 0)
+    return li[keep], lj[keep], v[keep]
+
+
+def dense_block(n: int, edges: Edges, members: Tensor) -> Tensor:
+    """The symmetric (k, k) affinity among `members` (k of n vertices) from sparse upper-triangle
+    edges; zero diagonal."""
+    li, lj, v = restrict_edges(n, edges, members)
     W = torch.zeros(len(members), len(members), dtype=v.dtype, device=v.device)
-    W[li[keep], lj[keep]] = v[keep]
+    W[li, lj] = v
     return W + W.T
 
 
 @torch.no_grad()
 def solve_clipper_sparse(
     n: int,
-    edges: tuple[Tensor, Tensor, Tensor],
+    edges: Edges,
     *,
     generator: torch.Generator | None = None,
     cfg: ClipperConfig | None = None,
@@ -240,18 +257,7 @@ def solve_clipper_sparse(
                     torch.ones((1, len(members)), dtype=torch.bool, device=device), cfg)
     inliers = torch.zeros((1, n), dtype=torch.bool, device=device)
     inliers[0, members[chosen[0]]] = True
-    x = chosen.to(dtype)
-    size = x.sum(-1)
-    score = (x * _affinity_mv(W[None], sub_diag, x)).sum(-1) / size.clamp_min(1)
-    return ClipperResult(
-        inliers=inliers,
-        u=state.u,
-        score=score,
-        objective=state.objective,
-        iterations=state.iterations,
-        penalty_updates=state.penalty_updates,
-        converged=state.converged,
-    )
+    return _result(state, inliers, _density(W[None], sub_diag, chosen))
 
 
 # --------------------------------------------------------------------------------------------
