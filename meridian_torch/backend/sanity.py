@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from meridian_torch.config import BackendConfig
+from meridian_torch.geometry.se3 import yaw_of  # reads only the rotation's first column: SE(2) or SE(3)
 
 __all__ = ["heading_bend_deg", "inlier_disagreement", "off_map_fraction", "sanity_problems"]
 
@@ -25,17 +26,13 @@ def off_map_fraction(xy: np.ndarray, patch_bounds_xy: np.ndarray, margin_m: floa
     return float(1.0 - inside.mean()) if len(xy) else 0.0
 
 
-def _yaw(T: np.ndarray) -> np.ndarray:
-    return np.arctan2(T[..., 1, 0], T[..., 0, 0])
-
-
 def inlier_disagreement(T_solution: np.ndarray, T_measured: np.ndarray, max_m: float, max_deg: float) -> float:
     """Share of loop closures (K, 3, 3 measured poses of their nodes) that the optimized poses of
     those nodes (K, 3, 3) miss by more than `max_m` or `max_deg`."""
     if len(T_measured) == 0:
         return 0.0
     dt = np.linalg.norm(T_solution[:, :2, 2] - T_measured[:, :2, 2], axis=1)
-    dyaw = np.degrees(np.abs(np.angle(np.exp(1j * (_yaw(T_solution) - _yaw(T_measured))))))
+    dyaw = np.degrees(np.abs(np.remainder(yaw_of(T_solution) - yaw_of(T_measured) + np.pi, 2 * np.pi) - np.pi))
     return float(((dt > max_m) | (dyaw > max_deg)).mean())
 
 
@@ -44,7 +41,7 @@ def heading_bend_deg(T_solution: np.ndarray, T_odom: np.ndarray, window_m: float
     within any `window_m` of travelled odometry path: how far the solution turned the odometry."""
     if len(T_solution) < 2:
         return 0.0
-    correction = np.unwrap(_yaw(T_solution) - _yaw(T_odom))
+    correction = np.unwrap(yaw_of(T_solution) - yaw_of(T_odom))
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(T_odom[:, :2, 2], axis=0), axis=1))])
     start = np.searchsorted(path, path - window_m)  # first frame of the window ending at each frame
     bend = [np.ptp(correction[s : k + 1]) for k, s in enumerate(start)]  # once per run: a plain loop
