@@ -349,5 +349,9 @@ def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse:
     head = sparse_affinity(c.select(torch.arange(first_new)), cfg)
     tail = sparse_affinity(c, cfg, first_new=first_new)
     assert bool((tail[1] >= first_new).all())
-    key = lambda e: sorted(zip(e[0].tolist(), e[1].tolist(), e[2].tolist()))
-    assert key(tuple(torch.cat([a, b]) for a, b in zip(head, tail))) == key((i, j, v))
+    # the same edges; values to rounding (vectorised and scalar kernels may differ in the last bit,
+    # depending on how a batch falls into SIMD lanes)
+    joined = sorted(zip(*(torch.cat([a, b]).tolist() for a, b in zip(head, tail))))
+    whole = sorted(zip(i.tolist(), j.tolist(), v.tolist()))
+    assert [e[:2] for e in joined] == [e[:2] for e in whole]
+    np.testing.assert_allclose([e[2] for e in joined], [e[2] for e in whole], rtol=0, atol=1e-12)
