@@ -85,6 +85,7 @@ class ReplayedSequence:
             step = np.arange(n - 2, -1, -1) if p % 2 else np.arange(1, n)
             order.append(step)
         self.order = np.concatenate(order)
+        self.pass_ends = np.cumsum([len(o) for o in order])  # frames shown by the end of each pass
         t = reader.frame_times
         dt = np.diff(t)
         steps = [dt] + [dt[::-1] if p % 2 else dt for p in range(1, passes)]
@@ -150,6 +151,8 @@ def run_child(args: argparse.Namespace) -> dict:
     source = reader if args.passes == 1 else ReplayedSequence(reader, args.passes)
     if args.frames:
         source = _FirstFrames(source, args.frames)
+    source = _PassMarks(source, getattr(source, "pass_ends", None) or
+                        getattr(getattr(source, "source", None), "pass_ends", None) or [len(source)])
 
     rss_before = current_rss_mib()
     load = _load_average()
@@ -215,7 +218,50 @@ def run_child(args: argparse.Namespace) -> dict:
         "localized": bool(run.result.localized),
         "fix_submap": run.result.fix_submap_index,
         "metrics": metrics,
+        "passes": _pass_rows(source, started),
     }
+
+
+def _pass_rows(source: _PassMarks, started: float) -> list[dict]:
+    """Per pass of the drive: frames, seconds of driving and of wall time, frames/s, RSS at its end."""
+    rows, prev_frames, prev_wall = [], 0, started
+    for frames, wall, rss in source.marks:
+        drive = float(source.frame_times[frames - 1] - source.frame_times[max(prev_frames - 1, 0)])
+        rows.append({"frames": frames - prev_frames, "drive_s": drive, "wall_s": wall - prev_wall,
+                     "frames_per_s": (frames - prev_frames) / max(wall - prev_wall, 1e-9), "rss_mib": rss})
+        prev_frames, prev_wall = frames, wall
+    return rows
+
+
+class _PassMarks:
+    """Wraps a source and notes the wall clock and resident memory when each pass's last frame is
+    read (frames are read one batch ahead of the mapper, so a mark leads its pass by a batch)."""
+
+    def __init__(self, source, pass_ends) -> None:
+        from meridian_torch.runtime import current_rss_mib
+
+        self.source, self._rss = source, current_rss_mib
+        self.pass_ends = [int(e) for e in pass_ends if e <= len(source)] or [len(source)]
+        if self.pass_ends[-1] < len(source):
+            self.pass_ends.append(len(source))
+        self.frame_times = source.frame_times
+        self.camera, self.odometry, self.groundtruth = source.camera, source.odometry, source.groundtruth
+        self.marks: list[tuple[int, float, float]] = []  # (frames read, perf_counter, RSS MiB)
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def __getitem__(self, k: int):
+        frame = self.source[k]
+        if k + 1 in self.pass_ends and all(m[0] != k + 1 for m in self.marks):
+            self.marks.append((k + 1, time.perf_counter(), self._rss()))
+        return frame
+
+    def ortho(self):
+        return self.source.ortho()
+
+    def require_odometry_without_gaps(self, max_gap_s: float, n_frames: int | None = None) -> None:
+        self.source.require_odometry_without_gaps(max_gap_s, n_frames)
 
 
 class _FirstFrames:
@@ -311,6 +357,15 @@ def report(results: list[tuple[str, dict]]) -> str:
     for name, f in rows:
         lines.append(f"| {name} | " + " | ".join(f(r) for _, r in results) + " |")
     lines.append("")
+    for label, r in results:
+        if len(r.get("passes") or []) > 1:
+            lines.append(f"per pass of the drive, {label} (wall and RSS when its last frame was read):")
+            lines.append("| pass | frames | driving s | wall s | frames/s | RSS MiB |")
+            lines.append("|---|---|---|---|---|---|")
+            for i, row in enumerate(r["passes"]):
+                lines.append(f"| {i + 1} | {row['frames']} | {row['drive_s']:.0f} | {row['wall_s']:.0f} | "
+                             f"{row['frames_per_s']:.2f} | {row['rss_mib']:.0f} |")
+            lines.append("")
     for label, r in results:
         lines.append(f"time per stage, {label} ({r['source']}):")
         lines.append("| stage | s | % of wall | calls | ms per call |")
