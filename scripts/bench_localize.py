@@ -85,7 +85,7 @@ class ReplayedSequence:
             step = np.arange(n - 2, -1, -1) if p % 2 else np.arange(1, n)
             order.append(step)
         self.order = np.concatenate(order)
-        self.pass_ends = np.cumsum([len(o) for o in order])  # frames shown by the end of each pass
+        self.pass_ends = [int(e) for e in np.cumsum([len(o) for o in order])]  # frames shown by the end of each pass
         t = reader.frame_times
         dt = np.diff(t)
         steps = [dt] + [dt[::-1] if p % 2 else dt for p in range(1, passes)]
