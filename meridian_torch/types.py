@@ -27,6 +27,12 @@ class LineKind(IntEnum):
     INFINITE = 2
 
 
+def _moved(container, device: torch.device | str | None, dtype: torch.dtype | None) -> dict[str, torch.Tensor]:
+    """The tensors of a dataclass of tensors moved to `device`; floating ones also to `dtype`."""
+    tensors = {f.name: getattr(container, f.name) for f in fields(container)}
+    return {name: t.to(device=device, dtype=dtype if t.is_floating_point() else None) for name, t in tensors.items()}
+
+
 @dataclass(frozen=True)
 class PrimitiveSet:
     points_xy: torch.Tensor  # (Np, 2) metres
@@ -74,11 +80,7 @@ class PrimitiveSet:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "PrimitiveSet":
         """Move every tensor to `device`; floating tensors also to `dtype`."""
-        moved = {}
-        for f in fields(self):
-            t = getattr(self, f.name)
-            moved[f.name] = t.to(device=device, dtype=dtype if t.is_floating_point() else None)
-        return PrimitiveSet(**moved)
+        return PrimitiveSet(**_moved(self, device, dtype))
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,10 @@ class PrimitiveBatch:
 
     def __len__(self) -> int:
         return int(self.points_xy.shape[0])
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "PrimitiveBatch":
+        """Move every tensor to `device`; floating tensors also to `dtype`."""
+        return PrimitiveBatch(**_moved(self, device, dtype))
 
     def select(self, index: slice | torch.Tensor) -> "PrimitiveBatch":
         """The patches `index` (a slice or an index tensor) as a batch."""

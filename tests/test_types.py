@@ -1,4 +1,5 @@
-"""PrimitiveBatch padding: trimming keeps every patch's content and drops only unused padding."""
+"""PrimitiveBatch padding: trimming keeps every patch's content and drops only unused padding; moving
+batches between devices and dtypes."""
 
 from __future__ import annotations
 
@@ -46,3 +47,14 @@ def test_trimming_keeps_entries_after_a_gap_in_the_valid_mask() -> None:
     gapped = type(batch)(**{**vars(batch), "point_valid": valid})
     assert gapped.used_lengths()[0].tolist() == [4, 2]
     assert gapped.trimmed().points_xy.shape[1] == 4
+
+
+def test_moving_a_batch_changes_floating_dtypes_only_and_keeps_values() -> None:
+    batch = stack_primitive_sets([_set(4, 3, 0), _set(2, 1, 1)])
+    same = batch.to(device="cpu")
+    assert all(getattr(same, n) is getattr(batch, n) for n in vars(batch))  # nothing copied
+    wide = batch.to(dtype=torch.float64)
+    for name, t in vars(batch).items():
+        moved = getattr(wide, name)
+        assert moved.dtype == (torch.float64 if t.is_floating_point() else t.dtype)
+        assert torch.equal(moved.to(t.dtype), t)

@@ -23,6 +23,7 @@ Files are written atomically.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,12 @@ class AerialMap:
 
     def __len__(self) -> int:
         return len(self.patches)
+
+    def to(self, device: torch.device | str) -> "AerialMap":
+        """The map with its primitives and global descriptors on `device` (the same map when
+        they are there already)."""
+        return dataclasses.replace(self, primitives=self.primitives.to(device=device),
+                                   global_descriptors=self.global_descriptors.to(device))
 
 
 def _arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:

@@ -77,7 +77,8 @@ class LiveLocalizer:
     ) -> None:
         self.camera = camera
         self.mapper = GroundMapper.from_config(cfg, camera, runtime)
-        self.localizer = Localizer(aerial_map, cfg, seed=seed, matcher=matcher, online_covariance=cfg.backend.covariance)
+        # matching runs where the map's primitives are: on the runtime's device
+        self.localizer = Localizer(aerial_map.to(runtime.device), cfg, seed=seed, matcher=matcher, online_covariance=cfg.backend.covariance)
         self.submaps: list[GroundSubmap] = []
         self.mapping_seconds = 0.0  # wall time in the ground mapper so far
         self._n_frames = 0
