@@ -472,10 +472,8 @@ def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out
     truth exists; messages name `shown` (where the outputs will be) instead of `out`."""
     from tqdm import tqdm
 
-    from meridian_torch.evaluation.report import write_report
-    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
-    from meridian_torch.io.results import write_outputs
     from meridian_torch.pipeline import localize_sequence
+    from meridian_torch.pipeline.outputs import write_run_folder
     from meridian_torch.runtime import resolve_runtime
 
     runtime = resolve_runtime(cfg.runtime)
@@ -500,11 +498,8 @@ def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out
         )
     finally:
         bar.close()
-    write_outputs(out, run.result, crs=ortho.crs)
-    metrics = None
-    if reader.groundtruth is not None:
-        metrics = evaluate_run(out, reader.groundtruth, cfg.evaluation)
-    report = write_report(out, run, ortho=ortho, groundtruth=reader.groundtruth, metrics=metrics)
+    metrics, report = write_run_folder(out, run, crs=ortho.crs, ortho=ortho, groundtruth=reader.groundtruth,
+                                       evaluation=cfg.evaluation)
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.seconds.items())
     typer.echo(f"{len(run.submaps)} submaps; {stages}; real-time factor {run.real_time_factor:.2f}; "
                f"peak memory {run.peak_memory_mib:.0f} MiB")

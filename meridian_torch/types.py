@@ -12,13 +12,15 @@ Lines are stored by two endpoints plus a kind:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, fields
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["LineKind", "PrimitiveSet", "PrimitiveBatch", "stack_primitive_sets", "GroundSubmap"]
+__all__ = ["LineKind", "PrimitiveSet", "PrimitiveBatch", "stack_primitive_sets", "GroundSubmap", "PatchGrid", "AerialMap"]
 
 
 class LineKind(IntEnum):
@@ -195,3 +197,44 @@ class GroundSubmap:
     primitives: PrimitiveSet  # odom x-y frame
     frame_descriptors: torch.Tensor  # (F, Dg) L2-normalized global descriptors of frames, F >= 1
     segment_ids: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.int64))  # (S,) 3D segments used
+
+
+@dataclass(frozen=True)
+class PatchGrid:
+    """P patches of an image: pixel windows and their world-metre geometry."""
+
+    pixel_boxes: np.ndarray  # (P, 4) int64 col0, row0, col1, row1 (exclusive ends)
+    grid_index: np.ndarray  # (P, 2) int64 (i, j): column and row index in the patch grid
+    bounds_xy: np.ndarray  # (P, 4) float64 world x_min, x_max, y_min, y_max of the patch
+    centres_xy: np.ndarray  # (P, 2) float64 world centre of the patch
+
+    def __len__(self) -> int:
+        return len(self.pixel_boxes)
+
+
+@dataclass
+class AerialMap:
+    """An aerial map: its patch grid, the primitives and global descriptor of every patch, the
+    orthophoto's georeference, and how it was built (`io.map_file` reads and writes it)."""
+
+    patches: PatchGrid
+    primitives: PrimitiveBatch
+    global_descriptors: torch.Tensor  # (P, Dg)
+    meters_per_pixel: float
+    origin_xy: tuple[float, float]  # world x, y of the orthophoto's top-left corner
+    image_size: tuple[int, int]  # (width, height) of the orthophoto in pixels
+    crs: str | None = None
+    config: dict[str, Any] = field(default_factory=dict)
+    backends: dict[str, str] = field(default_factory=dict)
+    source: dict[str, str] = field(default_factory=dict)
+    content_hash: str = ""
+    local_origin_xy: tuple[float, float] = (0.0, 0.0)  # world x, y of the map frame's origin
+
+    def __len__(self) -> int:
+        return len(self.patches)
+
+    def to(self, device: torch.device | str) -> "AerialMap":
+        """The map with its primitives and global descriptors on `device` (the same map when
+        they are there already)."""
+        return dataclasses.replace(self, primitives=self.primitives.to(device=device),
+                                   global_descriptors=self.global_descriptors.to(device))

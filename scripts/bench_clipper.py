@@ -17,8 +17,8 @@ import time
 
 import torch
 
+from meridian_torch.config.matching import ClipperConfig
 from meridian_torch.matching.clipper import solve_clipper
-from meridian_torch.matching.config import ClipperConfig
 from meridian_torch.runtime import peak_rss_mib
 
 __all__ = ["planted_clique_problem", "bench_clipper", "main"]

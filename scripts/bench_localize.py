@@ -297,7 +297,10 @@ def _with_stages(record_stages, fn):
 
 def _metrics(run, source, cfg) -> dict:
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
-    from meridian_torch.io.results import write_outputs
+    try:
+        from meridian_torch.pipeline.outputs import write_outputs
+    except ImportError:  # source trees before the writer moved to the pipeline
+        from meridian_torch.io.results import write_outputs
 
     with tempfile.TemporaryDirectory() as tmp:
         write_outputs(tmp, run.result, crs=None)

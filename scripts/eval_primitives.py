@@ -141,7 +141,7 @@ def load_dataset(name: str):
 
 
 def _kitti0_world():
-    from meridian_torch.sim.config import ClassRasterConfig, OrthoRenderConfig, WorldConfig
+    from meridian_torch.config.sim import ClassRasterConfig, OrthoRenderConfig, WorldConfig
     from meridian_torch.sim.from_raster import world_from_class_raster
     from meridian_torch.sim.ortho_render import render_orthophoto
 

@@ -33,14 +33,15 @@ from tqdm import tqdm
 from meridian_torch.config import CONFIG_DIR, MeridianConfig, config_key, load_config
 from meridian_torch.evaluation.trajectory_metrics import evaluate_run
 from meridian_torch.io.atomic import write_text_atomic
-from meridian_torch.io.map_file import AerialMap, load_aerial_map
+from meridian_torch.io.map_file import load_aerial_map
 from meridian_torch.io.ortho import write_orthophoto
-from meridian_torch.io.results import write_outputs
+from meridian_torch.pipeline.outputs import write_outputs
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.aerial_map import build_map_file, map_config_dict
 from meridian_torch.pipeline import localize_sequence
 from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.simulate import render_world_orthophoto, simulate_sequence
+from meridian_torch.types import AerialMap
 
 # Paper Table I (KITTI ATE, m): Meridian incremental / final; Table V is on the Camp data only.
 PAPER = {"kitti00": (2.0, 1.5), "kitti02": (3.3, 4.2), "kitti09": (2.4, 2.1)}  # by sim.name

@@ -209,8 +209,8 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
     from meridian_torch.geometry.se3 import interpolate_poses
     from meridian_torch.io.map_file import load_aerial_map
     from meridian_torch.io.sequence import SequenceReader
-    from meridian_torch.matching.match import match_submap
     from meridian_torch.mapping.ground_map import map_ground
+    from meridian_torch.matching.match import match_submap
     from meridian_torch.runtime import resolve_runtime
 
     torch.set_num_threads(threads)

@@ -28,9 +28,15 @@ import cv2
 import numpy as np
 import torch
 
+from meridian_torch.config.sim import (
+    CameraConfig,
+    GroundRenderConfig,
+    OrthoRenderConfig,
+    TrajectoryConfig,
+    WorldConfig,
+)
 from meridian_torch.perception.classical import ClassicalSegmenter, ColourTextureDescriber, PixelFeatures
 from meridian_torch.sim.classes import OBJECT_CLASSES
-from meridian_torch.sim.config import CameraConfig, GroundRenderConfig, OrthoRenderConfig, TrajectoryConfig, WorldConfig
 from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from numerics import assert_close_reassociated
 from typer.testing import CliRunner
 
 from meridian_torch.cli import app
@@ -15,7 +16,6 @@ from meridian_torch.io.ortho import Orthophoto, write_orthophoto
 from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.simulate import build_world
-from numerics import assert_close_reassociated
 
 CFG = load_config(CONFIG_DIR / "tiny.yaml")
 

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.affinity import (
     affinity,
     affinity_matrix,
@@ -17,7 +18,6 @@ from meridian_torch.matching.affinity import (
     unary_scores,
 )
 from meridian_torch.matching.associations import Associations, putative_associations
-from meridian_torch.matching.config import AffinityConfig
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
 SEG, RAY, INF = int(LineKind.SEGMENT), int(LineKind.RAY), int(LineKind.INFINITE)

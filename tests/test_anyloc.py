@@ -12,8 +12,8 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from meridian_torch.cli import app
+from meridian_torch.config.perception import GlobalDescriptorConfig
 from meridian_torch.errors import ModelWeightsError
-from meridian_torch.perception.config import GlobalDescriptorConfig
 from meridian_torch.perception.factory import build_global_describer
 from meridian_torch.perception.neural.anyloc import (
     AnyLocFacet,

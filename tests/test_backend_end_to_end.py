@@ -22,9 +22,14 @@ from meridian_torch.backend.localizer import Localizer
 from meridian_torch.config import MeridianConfig
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse
 from meridian_torch.geometry.trajectory import Trajectory
-from meridian_torch.io.map_file import AerialMap
-from meridian_torch.mapping.tiling import PatchGrid
-from meridian_torch.types import GroundSubmap, LineKind, PrimitiveSet, stack_primitive_sets
+from meridian_torch.types import (
+    AerialMap,
+    GroundSubmap,
+    LineKind,
+    PatchGrid,
+    PrimitiveSet,
+    stack_primitive_sets,
+)
 
 D, DG, SIZE = 16, 8, 150.0
 

@@ -19,10 +19,8 @@ from meridian_torch.config import MeridianConfig
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse, yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
-from meridian_torch.io.map_file import AerialMap
-from meridian_torch.mapping.tiling import PatchGrid
 from meridian_torch.matching.hypotheses import Hypotheses
-from meridian_torch.types import GroundSubmap, PrimitiveSet, stack_primitive_sets
+from meridian_torch.types import AerialMap, GroundSubmap, PatchGrid, PrimitiveSet, stack_primitive_sets
 
 D = 4
 MAP_SIZE_M = 150.0
@@ -290,7 +288,7 @@ def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_pa
 
     from meridian_torch.config import EvaluationConfig
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
-    from meridian_torch.io.results import write_outputs
+    from meridian_torch.pipeline.outputs import write_outputs
 
     world, _loc, _events, result = run
     write_outputs(tmp_path, result, crs="EPSG:32632")
@@ -310,7 +308,8 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     from meridian_torch.config import EvaluationConfig
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
     from meridian_torch.io.poses import parse_tum
-    from meridian_torch.io.results import read_outputs, write_outputs
+    from meridian_torch.io.results import read_outputs
+    from meridian_torch.pipeline.outputs import write_outputs
 
     world, _loc, events, result = run
     written = write_outputs(tmp_path, result, crs="EPSG:32632")
@@ -371,7 +370,7 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
 def test_report_is_written(run, tmp_path) -> None:
     from meridian_torch.evaluation.report import write_report
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
-    from meridian_torch.io.results import write_outputs
+    from meridian_torch.pipeline.outputs import write_outputs
 
     world, _loc, _events, result = run
     write_outputs(tmp_path, result)

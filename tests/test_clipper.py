@@ -13,8 +13,8 @@ import pytest
 import torch
 from pydantic import ValidationError
 
+from meridian_torch.config.matching import ClipperConfig
 from meridian_torch.matching.clipper import ClipperResult, _densest_exact, inlier_indices, solve_clipper
-from meridian_torch.matching.config import ClipperConfig
 
 ROUNDINGS = ("clipper", "support", "densest")
 DTYPES = (torch.float32, torch.float64)

@@ -7,8 +7,13 @@ import math
 import pytest
 import torch
 
-from meridian_torch.matching.config import CoarseSearchConfig
-from meridian_torch.matching.place_recognition import build_coarse_map, chain_scores, patch_priors, submap_scores
+from meridian_torch.config.matching import CoarseSearchConfig
+from meridian_torch.matching.place_recognition import (
+    build_coarse_map,
+    chain_scores,
+    patch_priors,
+    submap_scores,
+)
 from meridian_torch.matching.place_recognition.coarse import _rasterise
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 from tests.numerics import reassociation_tolerance
@@ -86,7 +91,12 @@ def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col:
     r = int(math.ceil(cfg.radius_m / cfg.cell_m))
     yaw = yaw_index * 2 * math.pi / cfg.yaws
     c, s = math.cos(yaw), math.sin(yaw)
-    from meridian_torch.matching.place_recognition.coarse import _blur, _channels, _n_channels, _primitive_points
+    from meridian_torch.matching.place_recognition.coarse import (
+        _blur,
+        _channels,
+        _n_channels,
+        _primitive_points,
+    )
 
     xy, cls, angle = _primitive_points(ground.points_xy, ground.point_descriptors, ground.line_endpoints,
                                 ground.line_descriptors, cmap.class_centres, cfg.cell_m / 2)

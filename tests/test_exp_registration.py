@@ -6,10 +6,9 @@ import math
 import sys
 
 import numpy as np
+from conftest import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from conftest import REPO
 
 sys.path.insert(0, str(REPO / "scripts"))
 import exp_registration as exp  # noqa: E402

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from meridian_torch.config import GroundMapConfig, GroundTrackingConfig
-from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.ground_observations import voxel_hash
 from meridian_torch.mapping.ground_submaps import (
     SubmapGeometry,

@@ -7,7 +7,12 @@ import torch
 
 from meridian_torch.config import GroundTrackingConfig
 from meridian_torch.mapping.ground_observations import FrameObservations, voxel_hash
-from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker, association_scores, sorted_overlap
+from meridian_torch.mapping.ground_tracking import (
+    SegmentStatus,
+    SegmentTracker,
+    association_scores,
+    sorted_overlap,
+)
 
 
 def _box_surface(centre, size, step=0.05):

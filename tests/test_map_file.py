@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from meridian_torch.io import map_file
-from meridian_torch.io.map_file import AerialMap, MapFileError, load_aerial_map, save_aerial_map
+from meridian_torch.io.map_file import MapFileError, load_aerial_map, save_aerial_map
 from meridian_torch.mapping.tiling import tile_image
-from meridian_torch.types import PrimitiveSet, stack_primitive_sets
+from meridian_torch.types import AerialMap, PrimitiveSet, stack_primitive_sets
 
 
 def _random_set(gen: torch.Generator, n_points: int, n_lines: int, dim: int = 8) -> PrimitiveSet:

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from meridian_torch.matching.config import AssociationConfig, MatchConfig, ParticleConfig
+from meridian_torch.config.matching import AssociationConfig, MatchConfig, ParticleConfig
 from meridian_torch.matching.match import match_arrays, match_submap
 from meridian_torch.types import PrimitiveSet, stack_primitive_sets
 

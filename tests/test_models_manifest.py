@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from meridian_torch.cli import app
-from meridian_torch.errors import ConfigError
 from meridian_torch.core.paths import MODELS_ENV, models_dir, shipped_dir
+from meridian_torch.errors import ConfigError
 from meridian_torch.export.manifest import load_manifest, verify_models
 
 runner = CliRunner()

@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from meridian_torch.config.perception import DescriptorConfig, GlobalDescriptorConfig
 from meridian_torch.errors import ConfigError, ModelWeightsError
-from meridian_torch.perception.config import DescriptorConfig, GlobalDescriptorConfig
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer
 from meridian_torch.perception.neural.describers import bilinear_upsampling_matrix, masked_feature_pool
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber

@@ -6,7 +6,6 @@ import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
-
 from numerics import assert_close_reassociated, reassociation_tolerance
 
 

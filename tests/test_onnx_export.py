@@ -15,10 +15,11 @@ from torch import nn
 from typer.testing import CliRunner
 
 from meridian_torch.config import CONFIG_DIR, MeridianConfig, load_config
+from meridian_torch.core.onnx_runtime import graph_metadata, open_session, run_session
 from meridian_torch.errors import ConfigError, ExportError
 from meridian_torch.export import onnx as onnx_export
 from meridian_torch.export.models import EXPORTABLE_MODELS, export_model
-from meridian_torch.export.onnx import export_checked, graph_metadata, open_session, run_session
+from meridian_torch.export.onnx import export_checked
 from meridian_torch.perception.factory import build_ground_perception
 from meridian_torch.perception.neural.onnx_backends import clear_session_cache
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from meridian_torch.matching.config import ParticleConfig
+from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.matching.particles import (
     concat_problems,
     patch_seeds,

@@ -6,6 +6,7 @@ import pytest
 import torch
 from pydantic import ValidationError
 
+from meridian_torch.config.perception import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
 from meridian_torch.perception.classical import (
     ClassicalSegmenter,
     ColourTextureDescriber,
@@ -13,7 +14,6 @@ from meridian_torch.perception.classical import (
     PixelFeatures,
     masked_mean,
 )
-from meridian_torch.perception.config import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 

@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from meridian_torch.matching.config import PlaceRecognitionConfig
+from meridian_torch.config.matching import PlaceRecognitionConfig
 from meridian_torch.matching.place_recognition import disk_overlap, select_patches, stack_similarity
 
 

@@ -7,7 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from meridian_torch.evaluation.primitive_metrics import dedup_points, line_metrics, point_metrics, polygon_ring
+from meridian_torch.evaluation.primitive_metrics import (
+    dedup_points,
+    line_metrics,
+    point_metrics,
+    polygon_ring,
+)
 
 
 def _rot(deg: float) -> np.ndarray:

@@ -10,8 +10,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
+from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.geometry.se2 import rotation_matrix, se2_apply, wrap_angle
-from meridian_torch.matching.config import RegistrationConfig
 from meridian_torch.matching.registration import RegistrationResult, register_se2
 
 DT = torch.float64

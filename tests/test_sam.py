@@ -12,8 +12,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from meridian_torch.config.perception import SegmenterConfig
 from meridian_torch.errors import ConfigError, ModelWeightsError
-from meridian_torch.perception.config import SegmenterConfig
 from meridian_torch.perception.factory import build_segmenter
 from meridian_torch.perception.neural.sam.automatic import (
     AutomaticMaskGenerator,
@@ -28,8 +28,8 @@ from meridian_torch.perception.neural.sam.model import (
     SamImageEncoderExport,
     SamPromptDecoderExport,
     build_sam,
-    resize_8bit,
     load_sam,
+    resize_8bit,
 )
 from meridian_torch.perception.protocols import Segmenter
 

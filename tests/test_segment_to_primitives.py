@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 from scipy.spatial import Delaunay
 
+from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping import segment_to_primitives as s2p
-from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.segment_to_primitives import (
     alpha_shape_outline,
     fit_circle,

@@ -7,9 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from meridian_torch.config.sim import (
+    ClassRasterConfig,
+    OdometryConfig,
+    OrthoRenderConfig,
+    TrajectoryConfig,
+    WorldConfig,
+)
 from meridian_torch.geometry.se3 import se3_inverse
 from meridian_torch.sim.classes import SimClass
-from meridian_torch.sim.config import ClassRasterConfig, OdometryConfig, OrthoRenderConfig, TrajectoryConfig, WorldConfig
 from meridian_torch.sim.odometry import simulate_odometry
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from meridian_torch.config.sim import OrthoRenderConfig, WorldConfig
 from meridian_torch.sim.classes import SimClass
-from meridian_torch.sim.config import OrthoRenderConfig, WorldConfig
 from meridian_torch.sim.ground_truth import ground_layer, load_ground_truth, save_ground_truth
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world

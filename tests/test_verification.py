@@ -7,8 +7,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.geometry.se2 import se2_matrix
-from meridian_torch.matching.config import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.verification import (
     alignment_score,

@@ -45,11 +45,15 @@ from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
 from meridian_torch.geometry.trajectory import Trajectory
-from meridian_torch.io.map_file import AerialMap
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.match import match_submap
-from meridian_torch.matching.place_recognition import CoarseSearch, resolved_mode, select_patches, stack_similarity
-from meridian_torch.types import GroundSubmap, PrimitiveBatch, PrimitiveSet
+from meridian_torch.matching.place_recognition import (
+    CoarseSearch,
+    resolved_mode,
+    select_patches,
+    stack_similarity,
+)
+from meridian_torch.types import AerialMap, GroundSubmap, PrimitiveBatch, PrimitiveSet
 
 __all__ = ["LocalizationResult", "Localizer", "LocalizerEvent", "Matcher", "lift_se2", "localize_offline"]
 

@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -19,9 +19,6 @@ from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import save_figure_atomic, write_text_atomic
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.results import RunOutputs, read_outputs
-
-if TYPE_CHECKING:
-    from meridian_torch.pipeline import SequenceRun
 
 __all__ = [
     "ERROR_PNG",
@@ -127,8 +124,10 @@ def _fmt(v: Any) -> str:
 
 def write_report(
     out_dir: str | Path,
-    run: SequenceRun | None = None,
     *,
+    stage_seconds: dict[str, float] | None = None,
+    real_time_factor: float | None = None,
+    peak_memory_mib: float | None = None,
     metrics: dict[str, Any] | None = None,
     ortho: Orthophoto | None = None,
     groundtruth: Trajectory | None = None,
@@ -136,8 +135,9 @@ def write_report(
 ) -> Path:
     """Write `report.md` and the plots into `out_dir` (a folder written by `write_outputs`).
 
-    `run` (optional) adds the whole run's stage timings, real-time factor and peak memory;
-    without it the localizer's own stage timings from the outputs are shown.
+    `stage_seconds`, `real_time_factor`, `peak_memory_mib` (optional) describe the whole run
+    (`pipeline.SequenceRun`); without `stage_seconds` the localizer's own stage timings from the
+    outputs are shown.
     """
     out = Path(out_dir)
     outputs = read_outputs(out)
@@ -175,16 +175,16 @@ def write_report(
                 ranks = ", ".join(f"{k} {_fmt(v)}" for k, v in values.items())
                 lines.append(f"- registration success ({mode}, {threshold}): {ranks}")
         lines.append("")
-    timings = run.seconds if run is not None else (s.get("timings_s") or {})
+    timings = stage_seconds if stage_seconds is not None else (s.get("timings_s") or {})
     if timings:
         lines += (
             ["| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in timings.items()] + [""]
         )
-    if run is not None:
+    if real_time_factor is not None and peak_memory_mib is not None:
         lines += [
             (
-                f"- real-time factor {run.real_time_factor:.2f} (sequence duration / processing time), "
-                f"peak memory {run.peak_memory_mib:.0f} MiB"
+                f"- real-time factor {real_time_factor:.2f} (sequence duration / processing time), "
+                f"peak memory {peak_memory_mib:.0f} MiB"
             ),
             "",
         ]

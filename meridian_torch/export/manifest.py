@@ -23,10 +23,10 @@ from typing import Literal
 import yaml
 from pydantic import Field, ValidationError
 
+from meridian_torch.config.base import StrictModel
 from meridian_torch.core.paths import models_dir, shipped_dir
 from meridian_torch.errors import ConfigError, ModelWeightsError
 from meridian_torch.io.atomic import write_text_atomic
-from meridian_torch.sim.config import StrictModel
 
 __all__ = [
     "ModelEntry",

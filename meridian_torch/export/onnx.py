@@ -30,17 +30,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from meridian_torch.errors import ExportError, ModelWeightsError
+from meridian_torch.core.onnx_runtime import Dim, graph_signature, open_session, run_session
+from meridian_torch.errors import ExportError
 
 __all__ = [
     "ParityCheck",
     "ExportReport",
     "export_checked",
-    "open_session",
-    "GraphSignature",
-    "graph_signature",
-    "graph_metadata",
-    "run_session",
 ]
 
 _log = logging.getLogger(__name__)
@@ -48,7 +44,6 @@ _log = logging.getLogger(__name__)
 # Above this many bytes of weights the graph keeps them in FILE.onnx.data (protobuf's 2 GiB limit).
 EXTERNAL_DATA_MIN_BYTES = 1 << 30
 
-Dim = int | str  # a fixed ONNX dimension or the name of a symbolic one
 Exporter = Literal["legacy", "dynamo"]
 
 
@@ -80,57 +75,12 @@ class ExportReport:
         return max(d for c in self.checks for d in c.max_abs_diff.values())
 
 
-@dataclass(frozen=True)
-class GraphSignature:
-    """Input and output names, shapes and element types of an ONNX graph."""
-
-    inputs: dict[str, tuple[Dim, ...]]
-    outputs: dict[str, tuple[Dim, ...]]
-    input_types: dict[str, str]  # e.g. "tensor(float)"
-
-
 def _as_tuple(outputs: Any) -> tuple[torch.Tensor, ...]:
     if isinstance(outputs, torch.Tensor):
         return (outputs,)
     if isinstance(outputs, (tuple, list)) and all(isinstance(o, torch.Tensor) for o in outputs):
         return tuple(outputs)
     raise TypeError(f"export needs a module returning a tensor or a tuple of tensors, got {type(outputs).__name__}")
-
-
-def _shape_of(value_info: Any) -> tuple[Dim, ...]:
-    dims = []
-    for i, d in enumerate(value_info.shape):
-        dims.append(d if isinstance(d, int) else (str(d) if d is not None else f"?{i}"))
-    return tuple(dims)
-
-
-def open_session(path: str | os.PathLike[str], what: str = "ONNX model") -> Any:
-    """An onnxruntime CPU session for `path`; a missing or unreadable file is a ModelWeightsError naming it."""
-    import onnxruntime as ort
-
-    path = Path(path)
-    if not path.is_file():
-        raise ModelWeightsError(f"{what} not found: {path} (models are never downloaded; see models/README.md)")
-    options = ort.SessionOptions()
-    options.log_severity_level = 3  # errors only; the exporter's graphs trigger harmless warnings
-    try:
-        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
-    except Exception as exc:  # onnxruntime raises several unrelated types for unusable files
-        raise ModelWeightsError(f"{path}: not a usable ONNX model ({type(exc).__name__}: {exc})") from None
-
-
-def graph_signature(session: Any) -> GraphSignature:
-    """The names, shapes and types of a session's graph inputs and outputs."""
-    return GraphSignature(
-        inputs={i.name: _shape_of(i) for i in session.get_inputs()},
-        outputs={o.name: _shape_of(o) for o in session.get_outputs()},
-        input_types={i.name: i.type for i in session.get_inputs()},
-    )
-
-
-def run_session(session: Any, inputs: Mapping[str, np.ndarray]) -> list[np.ndarray]:
-    """Run `session` on named numpy inputs and return every output in graph order."""
-    return session.run(None, dict(inputs))
 
 
 def _compare(
@@ -188,11 +138,6 @@ def _finalize(target: Path, metadata: Mapping[str, str]) -> None:
                   location=target.name + ".data")
     else:
         onnx.save(model, str(target))
-
-
-def graph_metadata(session: Any) -> dict[str, str]:
-    """The key/value metadata stored in a session's model (empty for graphs exported elsewhere)."""
-    return dict(session.get_modelmeta().custom_metadata_map)
 
 
 def _export(

@@ -96,7 +96,7 @@ def export_tiny_yolo_seg(
 
 def tiny_yolo_seg_session(seed: int, imgsz: int) -> tuple[object, str]:
     """An onnxruntime session of a freshly exported TinyYoloSeg (the file is deleted after loading)."""
-    from meridian_torch.export.onnx import open_session
+    from meridian_torch.core.onnx_runtime import open_session
 
     with tempfile.TemporaryDirectory(prefix="meridian-tiny-yolo-seg-") as folder:
         path = export_tiny_yolo_seg(Path(folder) / "tiny_yolo_seg.onnx", seed=seed, imgsz=imgsz)

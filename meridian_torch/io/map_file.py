@@ -23,8 +23,6 @@ Files are written atomically.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +31,10 @@ import torch
 
 from meridian_torch.errors import MeridianError
 from meridian_torch.io.npz_container import read_container, write_container
-from meridian_torch.mapping.tiling import PatchGrid
-from meridian_torch.types import PrimitiveBatch
+from meridian_torch.types import AerialMap, PatchGrid, PrimitiveBatch
 
 __all__ = [
-    "MAP_FORMAT", "MAP_FORMAT_VERSION", "AerialMap", "MapFileError", "georeference_mismatches", "load_aerial_map",
+    "MAP_FORMAT", "MAP_FORMAT_VERSION", "MapFileError", "georeference_mismatches", "load_aerial_map",
     "save_aerial_map",
 ]
 
@@ -53,31 +50,6 @@ _PRIMITIVE_FIELDS = (
 
 class MapFileError(MeridianError):
     """An aerial map file is unreadable, corrupted, or from another version or config."""
-
-
-@dataclass
-class AerialMap:
-    patches: PatchGrid
-    primitives: PrimitiveBatch
-    global_descriptors: torch.Tensor  # (P, Dg)
-    meters_per_pixel: float
-    origin_xy: tuple[float, float]  # world x, y of the orthophoto's top-left corner
-    image_size: tuple[int, int]  # (width, height) of the orthophoto in pixels
-    crs: str | None = None
-    config: dict[str, Any] = field(default_factory=dict)
-    backends: dict[str, str] = field(default_factory=dict)
-    source: dict[str, str] = field(default_factory=dict)
-    content_hash: str = ""
-    local_origin_xy: tuple[float, float] = (0.0, 0.0)  # world x, y of the map frame's origin
-
-    def __len__(self) -> int:
-        return len(self.patches)
-
-    def to(self, device: torch.device | str) -> "AerialMap":
-        """The map with its primitives and global descriptors on `device` (the same map when
-        they are there already)."""
-        return dataclasses.replace(self, primitives=self.primitives.to(device=device),
-                                   global_descriptors=self.global_descriptors.to(device))
 
 
 def _arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:

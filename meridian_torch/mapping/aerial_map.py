@@ -32,16 +32,16 @@ import torch
 
 from meridian_torch import __version__
 from meridian_torch.config import AerialMapConfig, PerceptionConfig
+from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.config.perception import active_backend_dict
 from meridian_torch.io.atomic import atomic_path, write_text_atomic
-from meridian_torch.io.map_file import AerialMap, save_aerial_map
+from meridian_torch.io.map_file import save_aerial_map
 from meridian_torch.io.ortho import Orthophoto, find_orthophoto, read_orthophoto
-from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
-from meridian_torch.mapping.tiling import PatchGrid, crop_offsets, tile_image
-from meridian_torch.perception.config import active_backend_dict
+from meridian_torch.mapping.tiling import crop_offsets, tile_image
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
-from meridian_torch.types import PrimitiveSet, stack_primitive_sets
+from meridian_torch.types import AerialMap, PatchGrid, PrimitiveSet, stack_primitive_sets
 
 __all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict", "map_frame_origin"]
 

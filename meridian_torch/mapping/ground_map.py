@@ -30,14 +30,19 @@ import numpy as np
 import torch
 
 from meridian_torch.config import GroundMapConfig, MeridianConfig
+from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.config.perception import active_backend_dict
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame, SequenceReader
-from meridian_torch.mapping.config import PrimitiveConfig
 from meridian_torch.mapping.ground_observations import FrameObservations, observe_frames
-from meridian_torch.mapping.ground_submaps import SubmapGeometry, SubmapTrigger, submap_primitives, thin_by_distance
+from meridian_torch.mapping.ground_submaps import (
+    SubmapGeometry,
+    SubmapTrigger,
+    submap_primitives,
+    thin_by_distance,
+)
 from meridian_torch.mapping.ground_tracking import SegmentTracker, TrackedSegment
-from meridian_torch.perception.config import active_backend_dict
 from meridian_torch.perception.factory import build_ground_perception
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.runtime import Runtime

@@ -34,12 +34,12 @@ import torch
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from meridian_torch.config import GroundMapConfig
-from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.ground_observations import (
-    separate_groups,
     group_largest_cluster,
     group_outlier_mask,
     group_voxel_downsample,
+    separate_groups,
     voxel_hash,
 )
 from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker, TrackedSegment

@@ -47,7 +47,7 @@ import torch
 from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from meridian_torch.mapping.config import PrimitiveConfig
+from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = [

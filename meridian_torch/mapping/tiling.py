@@ -8,24 +8,11 @@ a patch give patches clipped to the image.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-__all__ = ["PatchGrid", "tile_image", "crop_offsets"]
+from meridian_torch.types import PatchGrid
 
-
-@dataclass(frozen=True)
-class PatchGrid:
-    """P patches of an image: pixel windows and their world-metre geometry."""
-
-    pixel_boxes: np.ndarray  # (P, 4) int64 col0, row0, col1, row1 (exclusive ends)
-    grid_index: np.ndarray  # (P, 2) int64 (i, j): column and row index in the patch grid
-    bounds_xy: np.ndarray  # (P, 4) float64 world x_min, x_max, y_min, y_max of the patch
-    centres_xy: np.ndarray  # (P, 2) float64 world centre of the patch
-
-    def __len__(self) -> int:
-        return len(self.pixel_boxes)
+__all__ = ["tile_image", "crop_offsets"]
 
 
 def _starts(length_px: int, patch_px: int, stride_px: int) -> np.ndarray:
@@ -53,7 +40,7 @@ def tile_image(
     patch_size_m: float,
     overlap: float,
 ) -> PatchGrid:
-    """Patches of `patch_size_m` with `overlap` covering a north-up image (FORMAT.md georeference)."""
+    """Patches of `patch_size_m` with `overlap` covering a north-up image (north-up, `origin_xy` = world x, y of its top-left corner)."""
     if width_px < 1 or height_px < 1:
         raise ValueError(f"image size must be positive, got {width_px}x{height_px}")
     patch_px = max(1, int(round(patch_size_m / meters_per_pixel)))

@@ -50,10 +50,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+
 import torch
 
+from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.associations import Associations
-from meridian_torch.matching.config import AffinityConfig
 from meridian_torch.types import LineKind, PrimitiveBatch, PrimitiveSet
 
 __all__ = [

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from meridian_torch.matching.config import ClipperConfig
+from meridian_torch.config.matching import ClipperConfig
 
 __all__ = ["ClipperResult", "Edges", "dense_block", "inlier_indices", "restrict_edges", "solve_clipper",
            "solve_clipper_sparse"]

@@ -24,11 +24,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.geometry.se2 import se2_matrix, wrap_angle
 from meridian_torch.matching.associations import Associations
 from meridian_torch.matching.particles import InlierSets
-from meridian_torch.matching.config import RegistrationConfig
 from meridian_torch.matching.registration import RegistrationResult, register_se2
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 

@@ -53,8 +53,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.matching.affinity import AffinityEntries
-from meridian_torch.matching.config import ParticleConfig
 from meridian_torch.matching.particle_noise import (
     ROW,
     mix,

@@ -36,8 +36,9 @@ import math
 from dataclasses import dataclass
 
 import torch
+
+from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.geometry.se2 import rotation_matrix, se2_matrix, wrap_angle
-from meridian_torch.matching.config import RegistrationConfig
 
 __all__ = ["RegistrationResult", "register_se2"]
 

@@ -24,7 +24,7 @@ import math
 import torch
 from torch import Tensor
 
-from meridian_torch.matching.config import VerificationConfig
+from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 

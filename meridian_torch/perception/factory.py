@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from meridian_torch.perception.config import (
+from meridian_torch.config.perception import (
     AnyLocConfig,
     DescriptorConfig,
     GlobalDescriptorConfig,

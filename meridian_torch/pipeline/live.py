@@ -29,11 +29,10 @@ from meridian_torch.backend.localizer import LocalizationResult, Localizer, Loca
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
-from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import Frame
 from meridian_torch.mapping.ground_map import GroundMapper, PerceivedFrames
 from meridian_torch.runtime import Runtime
-from meridian_torch.types import GroundSubmap
+from meridian_torch.types import AerialMap, GroundSubmap
 
 __all__ = ["LiveEstimate", "LiveLocalizer"]
 

@@ -15,12 +15,11 @@ from dataclasses import dataclass, field
 from meridian_torch.backend.localizer import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
-from meridian_torch.io.map_file import AerialMap
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.ground_map import perceived_batches
 from meridian_torch.pipeline.live import LiveLocalizer
 from meridian_torch.runtime import Runtime, peak_rss_mib
-from meridian_torch.types import GroundSubmap
+from meridian_torch.types import AerialMap, GroundSubmap
 
 __all__ = ["SequenceRun", "localize_sequence"]
 

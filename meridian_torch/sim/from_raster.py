@@ -22,9 +22,9 @@ import shapely
 from scipy.ndimage import convolve, gaussian_filter1d
 from skimage.morphology import skeletonize
 
+from meridian_torch.config.sim import ClassRasterConfig, WorldConfig
 from meridian_torch.errors import SimulationError
 from meridian_torch.sim.classes import BASE_COLOURS, REGION_CLASSES, SimClass, class_by_name
-from meridian_torch.sim.config import ClassRasterConfig, WorldConfig
 from meridian_torch.sim.procedural import (
     CAR_SIZE_M,
     Canvas,

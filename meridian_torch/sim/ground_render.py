@@ -33,8 +33,8 @@ import math
 import numpy as np
 import torch
 
+from meridian_torch.config.sim import CameraConfig, GroundRenderConfig
 from meridian_torch.io.camera import CameraModel
-from meridian_torch.sim.config import CameraConfig, GroundRenderConfig
 from meridian_torch.sim.world import World
 
 __all__ = ["camera_model_from_config", "GroundRenderer", "R_BASE_OPTICAL", "NO_CLASS"]

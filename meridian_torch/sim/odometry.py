@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from meridian_torch.config.sim import OdometryConfig
 from meridian_torch.errors import SimulationError
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.poses import read_kitti, read_tum
-from meridian_torch.sim.config import OdometryConfig
 from meridian_torch.sim.trajectory import kitti_to_base
 
 __all__ = ["simulate_odometry"]

@@ -13,11 +13,19 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from meridian_torch.config.sim import OrthoRenderConfig
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.sim.classes import BASE_COLOURS, SimClass
-from meridian_torch.sim.config import OrthoRenderConfig
 from meridian_torch.sim.ground_truth import nearest_ground_index
-from meridian_torch.sim.procedural import CAR_SIZE_M, Canvas, car_colour, rect_polygon, road_samples, scatter_objects, smooth_noise
+from meridian_torch.sim.procedural import (
+    CAR_SIZE_M,
+    Canvas,
+    car_colour,
+    rect_polygon,
+    road_samples,
+    scatter_objects,
+    smooth_noise,
+)
 from meridian_torch.sim.world import World
 
 __all__ = ["render_orthophoto"]

@@ -16,9 +16,9 @@ import shapely
 from shapely.geometry import LineString, MultiLineString, box
 from shapely.ops import linemerge
 
+from meridian_torch.config.sim import WorldConfig
 from meridian_torch.errors import SimulationError
 from meridian_torch.sim.classes import BASE_COLOURS, SimClass
-from meridian_torch.sim.config import WorldConfig
 from meridian_torch.sim.world import World, WorldObject
 
 __all__ = [

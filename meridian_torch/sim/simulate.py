@@ -10,10 +10,10 @@ import numpy as np
 import torch
 
 from meridian_torch import __version__
+from meridian_torch.config.sim import SimConfig
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.sequence import SequenceWriter
-from meridian_torch.sim.config import SimConfig
 from meridian_torch.sim.from_raster import world_from_class_raster
 from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
 from meridian_torch.sim.ground_truth import save_ground_truth

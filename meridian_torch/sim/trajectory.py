@@ -10,12 +10,12 @@ import networkx as nx
 import numpy as np
 from scipy.ndimage import gaussian_filter1d, map_coordinates
 
+from meridian_torch.config.sim import TrajectoryConfig
 from meridian_torch.errors import SimulationError
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.poses import read_kitti, read_tum
 from meridian_torch.sim.classes import SimClass
-from meridian_torch.sim.config import TrajectoryConfig
 from meridian_torch.sim.ground_truth import ground_layer
 from meridian_torch.sim.procedural import CAR_SIZE_M, road_graph
 from meridian_torch.sim.world import World

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from meridian_torch.matching.config import CoarseSearchConfig
+from meridian_torch.config.matching import CoarseSearchConfig
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = [

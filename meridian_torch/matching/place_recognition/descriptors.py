@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from meridian_torch.matching.config import PlaceRecognitionConfig
+from meridian_torch.config.matching import PlaceRecognitionConfig
 
 __all__ = ["stack_similarity", "select_patches", "disk_overlap", "resolved_mode"]
 

@@ -188,7 +188,7 @@ class FastSamSegmenter:
         max_det: int = 300,
         stride: int = 32,
     ) -> None:
-        from meridian_torch.export.onnx import graph_signature
+        from meridian_torch.core.onnx_runtime import graph_signature
 
         self.session, self.source = session, source
         self.imgsz, self.conf, self.iou, self.max_det, self.stride = imgsz, conf, iou, max_det, stride
@@ -231,12 +231,12 @@ class FastSamSegmenter:
 
     @classmethod
     def from_file(cls, path: str | os.PathLike[str], **kwargs: Any) -> FastSamSegmenter:
-        from meridian_torch.export.onnx import open_session
+        from meridian_torch.core.onnx_runtime import open_session
 
         return cls(open_session(path, "FastSAM ONNX graph"), str(path), **kwargs)
 
     def _run(self, batch: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        from meridian_torch.export.onnx import run_session
+        from meridian_torch.core.onnx_runtime import run_session
 
         if self.fixed_batch is None:
             chunks = [batch]

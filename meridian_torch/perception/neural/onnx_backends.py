@@ -41,7 +41,7 @@ class OnnxGraph:
     """
 
     def __init__(self, path: str | os.PathLike[str], what: str, expect: dict[str, str]) -> None:
-        from meridian_torch.export.onnx import graph_metadata, graph_signature, open_session
+        from meridian_torch.core.onnx_runtime import graph_metadata, graph_signature, open_session
 
         self.path = Path(path)
         key = str(self.path.resolve())
@@ -72,7 +72,7 @@ class OnnxGraph:
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """Run on (B, ...) and return the first output on `x`'s device and dtype."""
-        from meridian_torch.export.onnx import run_session
+        from meridian_torch.core.onnx_runtime import run_session
 
         feed = x.detach().to("cpu", torch.float32).contiguous().numpy()
         out = run_session(self.session, {self.input_name: feed})[0]

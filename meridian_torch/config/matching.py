@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from meridian_torch.sim.config import StrictModel
+from meridian_torch.config.base import StrictModel
 
 __all__ = ["ClipperConfig"]
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from meridian_torch.config.base import StrictModel
 
 __all__ = [
-    "StrictModel",
     "WorldConfig",
     "ClassRasterConfig",
     "OrthoRenderConfig",
@@ -17,13 +18,6 @@ __all__ = [
     "OdometryConfig",
     "SimConfig",
 ]
-
-
-class StrictModel(BaseModel):
-    """Unknown keys are errors; values are validated on assignment too; NaN and infinities are
-    refused in every float (an infinite sigma or gate silently disables what it bounds)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False)
 
 
 class ClassRasterConfig(StrictModel):

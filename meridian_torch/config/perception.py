@@ -10,7 +10,7 @@ from typing import Any, Literal, get_args
 
 from pydantic import Field
 
-from meridian_torch.sim.config import StrictModel
+from meridian_torch.config.base import StrictModel
 
 __all__ = [
     "ClassicalSegmenterConfig",
@@ -277,3 +277,21 @@ def active_backend_dict(block: StrictModel) -> dict[str, Any]:
     data = block.model_dump(mode="json")
     names = get_args(type(block).model_fields["backend"].annotation)
     return {key: value for key, value in data.items() if key not in names or key == getattr(block, "backend")}
+
+
+class PerceptionConfig(StrictModel):
+    """Back ends of segmentation and description; aerial and ground share the describers so
+    that their descriptors are comparable."""
+
+    aerial_segmenter: SegmenterConfig = SegmenterConfig()
+    ground_segmenter: SegmenterConfig = SegmenterConfig()
+    descriptor: DescriptorConfig = DescriptorConfig()
+    global_descriptor: GlobalDescriptorConfig = GlobalDescriptorConfig()
+    ground_engine: Literal["torch", "onnx"] = Field(
+        default="torch",
+        description="onnx: the ground pipeline's segmenter and describers run exported graphs with onnxruntime only",
+    )
+    onnx: OnnxGraphsConfig = OnnxGraphsConfig()
+
+
+__all__ += ["PerceptionConfig"]
