@@ -74,7 +74,10 @@ def with_decoys(batch: PrimitiveBatch, bounds: np.ndarray, n_decoys: int) -> tup
         scale = torch.tensor([fx, fy], dtype=batch.points_xy.dtype)
         centre = torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=batch.points_xy.dtype)
         shift = torch.as_tensor(offset, dtype=batch.points_xy.dtype)
-        move = lambda p: (p - centre) * scale + centre + shift  # noqa: E731
+
+        def move(p, centre=centre, scale=scale, shift=shift):
+            return (p - centre) * scale + centre + shift
+
         parts.append(PrimitiveBatch(**{
             **{f.name: getattr(batch, f.name) for f in fields(batch)},
             "points_xy": move(batch.points_xy), "line_endpoints": move(batch.line_endpoints),

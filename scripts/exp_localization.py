@@ -35,10 +35,10 @@ from meridian_torch.evaluation.trajectory_metrics import evaluate_run
 from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.io.map_file import load_aerial_map
 from meridian_torch.io.ortho import write_orthophoto
-from meridian_torch.pipeline.outputs import write_outputs
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.aerial_map import build_map_file, map_config_dict
 from meridian_torch.pipeline import localize_sequence
+from meridian_torch.pipeline.outputs import write_outputs
 from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.simulate import render_world_orthophoto, simulate_sequence
 from meridian_torch.types import AerialMap

@@ -83,7 +83,7 @@ def top_l_success(T_hyp: np.ndarray, valid: np.ndarray, T_true: np.ndarray, max_
     dt, dyaw = pose_errors(T_hyp, T_true)
     hit = valid & (dt < max_t_m) & (dyaw < max_yaw_deg)
     rank = np.cumsum(valid) - 1  # position among the valid hypotheses
-    return {l: bool((hit & (rank < l)).any()) for l in top_l}
+    return {top: bool((hit & (rank < top)).any()) for top in top_l}
 
 
 def containing_patch(centres_xy: np.ndarray, bounds_xy: np.ndarray, position_xy: np.ndarray) -> int | None:
@@ -108,19 +108,19 @@ class Tally:
         self.hits: dict[tuple[str, str, tuple[float, float]], dict[int, int]] = {}
 
     def add(self, variant: str, mode: str, threshold: tuple[float, float], success: dict[int, bool]) -> None:
-        row = self.hits.setdefault((variant, mode, threshold), {l: 0 for l in TOP_L})
-        for l, ok in success.items():
-            row[l] += int(ok)
+        row = self.hits.setdefault((variant, mode, threshold), {top: 0 for top in TOP_L})
+        for top, ok in success.items():
+            row[top] += int(ok)
 
     def percent(self, variant: str, mode: str, threshold: tuple[float, float]) -> list[float]:
-        row = self.hits.get((variant, mode, threshold), {l: 0 for l in TOP_L})
-        return [100.0 * row[l] / max(self.n, 1) for l in TOP_L]
+        row = self.hits.get((variant, mode, threshold), {top: 0 for top in TOP_L})
+        return [100.0 * row[top] / max(self.n, 1) for top in TOP_L]
 
 
 def format_table(title: str, tally: Tally, threshold: tuple[float, float], paper: dict[str, tuple] | None) -> str:
     """Rows per variant: known rotation top-1/5/10/25 | unknown rotation top-1/5/10/25 (percent)."""
     head = f"{title}: {tally.n} submaps, success < {threshold[0]:g} m and < {threshold[1]:g} deg (percent)"
-    cols = " ".join(f"{'K top-' + str(l):>9}" for l in TOP_L) + " " + " ".join(f"{'U top-' + str(l):>9}" for l in TOP_L)
+    cols = " ".join(f"{'K top-' + str(top):>9}" for top in TOP_L) + " " + " ".join(f"{'U top-' + str(top):>9}" for top in TOP_L)
     lines = [head, f"{'method':<28} {cols}"]
     for name, _ in VARIANTS:
         values = tally.percent(name, "known", threshold) + tally.percent(name, "unknown", threshold)

@@ -51,7 +51,10 @@ def loop_reference(ground: PrimitiveSet, patches: list[PrimitiveSet], k: int, un
             g_ok = [True] * gd.shape[0] if kind == "points" else usable_lines(ground, min_len)
             a_ok = [True] * ad.shape[0] if kind == "points" else usable_lines(patch, min_len)
             g_off, a_off = (0, 0) if kind == "points" else (n_gp, n_ap)
-            cos = lambda gi, ai: float(gd[gi] @ ad[ai])  # noqa: E731
+
+            def cos(gi, ai, gd=gd, ad=ad):
+                return float(gd[gi] @ ad[ai])
+
             g_ids = [i for i, ok in enumerate(g_ok) if ok]
             a_ids = [i for i, ok in enumerate(a_ok) if ok]
             for gi in g_ids:

@@ -305,7 +305,10 @@ def test_known_edges_of_a_prefix_give_the_same_graph_and_inliers() -> None:
     grown = select_inliers(c, CFG, torch.Generator().manual_seed(0), known_edges=(n_known, prefix.edges))
     fresh = select_inliers(c, CFG, torch.Generator().manual_seed(0))
     assert torch.equal(grown.inliers, fresh.inliers)
-    key = lambda e: sorted(zip(e[0].tolist(), e[1].tolist(), e[2].tolist()))
+
+    def key(e):
+        return sorted(zip(e[0].tolist(), e[1].tolist(), e[2].tolist()))
+
     assert key(grown.edges) == key(fresh.edges)
 
 

@@ -42,7 +42,9 @@ def _unit(x: np.ndarray) -> np.ndarray:
 
 
 def _set(pts, pdesc, lines, ldesc) -> PrimitiveSet:
-    f = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
+    def f(a):
+        return torch.as_tensor(np.asarray(a), dtype=torch.float32)
+
     return PrimitiveSet(
         points_xy=f(pts).reshape(-1, 2),
         point_descriptors=f(pdesc).reshape(-1, D),

@@ -19,7 +19,8 @@ from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker
 from meridian_torch.types import LineKind
 
 
-def _segment(sid, points, occluded=np.zeros((0, 3)), status=SegmentStatus.INACTIVE, last_seen=0.0, desc=None):
+def _segment(sid, points, occluded=None, status=SegmentStatus.INACTIVE, last_seen=0.0, desc=None):
+    occluded = np.zeros((0, 3)) if occluded is None else occluded
     tracker = SegmentTracker(GroundTrackingConfig())
     d = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64) if desc is None else desc
     seg = TrackedSegment(sid, status, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),

@@ -276,7 +276,7 @@ def active_backend_dict(block: StrictModel) -> dict[str, Any]:
     """
     data = block.model_dump(mode="json")
     names = get_args(type(block).model_fields["backend"].annotation)
-    return {key: value for key, value in data.items() if key not in names or key == getattr(block, "backend")}
+    return {key: value for key, value in data.items() if key not in names or key == block.backend}
 
 
 class PerceptionConfig(StrictModel):

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from meridian_torch.core.kmeans import cosine_kmeans
 from meridian_torch.io.atomic import save_figure_atomic
 from meridian_torch.io.ortho import Orthophoto
-from meridian_torch.core.kmeans import cosine_kmeans
 from meridian_torch.types import AerialMap
 
 __all__ = ["plot_aerial_map", "plot_ground_submap"]

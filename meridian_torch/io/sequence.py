@@ -31,7 +31,7 @@ from meridian_torch.io.ortho import (
 )
 from meridian_torch.io.poses import parse_tum, write_tum
 
-__all__ = ["Frame", "read_camera", "write_camera", "SequenceReader", "SequenceWriter", "check_sequence"]
+__all__ = ["Frame", "read_camera", "SequenceReader", "SequenceWriter", "check_sequence"]
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale", "T_base_camera")
 FRAMES_HEADER = ("timestamp", "rgb", "depth")
@@ -155,11 +155,6 @@ def _validated_camera_dict(camera: CameraModel) -> dict[str, Any]:
     if problems:
         raise ValueError(problems[0])
     return data
-
-
-def write_camera(path: PathLike, camera: CameraModel) -> None:
-    """Write camera.json (FORMAT.md) atomically; ValueError if the camera is invalid."""
-    write_text_atomic(path, json.dumps(_validated_camera_dict(camera), indent=1) + "\n")
 
 
 # ---------------------------------------------------------------------------------- frames.csv

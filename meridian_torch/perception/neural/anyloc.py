@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from meridian_torch.errors import ModelWeightsError
 from meridian_torch.core.kmeans import cosine_kmeans
+from meridian_torch.errors import ModelWeightsError
 from meridian_torch.perception.neural.dinov2 import (
     DinoVisionTransformer,
     Facet,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from meridian_torch.perception.neural.dinov2 import DinoVisionTransformer, load_dinov2
 
-__all__ = ["shared_dinov2", "clear_model_cache"]
+__all__ = ["shared_dinov2"]
 
 _DINOV2: dict[tuple[str, str | None, int | None], DinoVisionTransformer] = {}
 
@@ -24,8 +24,3 @@ def shared_dinov2(
     if key not in _DINOV2:
         _DINOV2[key] = load_dinov2(architecture, weights_path, random_weights_seed, what)
     return _DINOV2[key]
-
-
-def clear_model_cache() -> None:
-    """Forget every cached model (their memory is freed once no describer holds them)."""
-    _DINOV2.clear()

@@ -54,6 +54,7 @@ class PromptEncoder(nn.Module):
         # positive/negative point, then the two box corners
         self.point_embeddings = nn.ModuleList(nn.Embedding(1, embed_dim) for _ in range(4))
         self.not_a_point_embed = nn.Embedding(1, embed_dim)
+        # Mask prompts are never used; the layers stay so the official checkpoint loads strictly.
         self.mask_downscaling = nn.Sequential(
             nn.Conv2d(1, mask_in_chans // 4, kernel_size=2, stride=2),
             LayerNorm2d(mask_in_chans // 4),
@@ -76,10 +77,6 @@ class PromptEncoder(nn.Module):
         table = torch.cat([e.weight for e in self.point_embeddings], dim=0)  # (4, C)
         embedding = pe + table[labels.clamp(min=0).long()]
         return torch.where((labels == -1)[..., None], self.not_a_point_embed.weight, embedding)
-
-    def embed_masks(self, masks: torch.Tensor) -> torch.Tensor:
-        """Low-resolution mask prompts (N, 1, 4h, 4w) -> dense embeddings (N, C, h, w)."""
-        return self.mask_downscaling(masks)
 
     def no_mask_dense_embedding(self) -> torch.Tensor:
         """(1, C, h, w) dense embedding used when no mask prompt is given."""
