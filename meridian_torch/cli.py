@@ -39,7 +39,7 @@ config_app = typer.Typer(help="Inspect configuration files.", no_args_is_help=Tr
 app.add_typer(config_app, name="config")
 models_app = typer.Typer(help="List and verify local model files (models/manifest.yaml).", no_args_is_help=True)
 app.add_typer(models_app, name="models")
-convert_app = typer.Typer(help="Convert other recordings to a sequence folder (FORMAT.md).", no_args_is_help=True)
+convert_app = typer.Typer(help="Convert other recordings to a sequence folder (README, Formats).", no_args_is_help=True)
 app.add_typer(convert_app, name="convert")
 
 ConfigOption = Annotated[
@@ -149,7 +149,7 @@ def config_show(config: ConfigOption = None, set_: SetOption = None) -> None:
 @app.command()
 @_error_boundary
 def check(
-    sequence: Annotated[Path, typer.Argument(help="Sequence folder (see FORMAT.md in the README).")],
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (format: README, Formats).")],
     quick: Annotated[bool, typer.Option("--quick", help="Read image headers only (default: decode every image).")]
     = False,
 ) -> None:
@@ -521,7 +521,7 @@ def _print_metrics(metrics: dict[str, Any]) -> None:
 @app.command()
 @_error_boundary
 def localize(
-    sequence: Annotated[Path, typer.Argument(help="Sequence folder (see FORMAT.md in the README).")],
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (format: README, Formats).")],
     map_file: Annotated[Path, typer.Option("--map", "-m", help="Aerial map (.mtm); built from the sequence's "
                                                                 "orthophoto first if it does not exist.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (trajectories, metrics, plots, report); "

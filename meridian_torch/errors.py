@@ -16,7 +16,7 @@ class ConfigError(MeridianError):
 
 
 class SequenceFormatError(MeridianError):
-    """A sequence folder violates FORMAT.md; the message names the file and the problem."""
+    """A sequence folder violates its format (README, Formats); the message names the file and the problem."""
 
 
 class OrthophotoError(SequenceFormatError):

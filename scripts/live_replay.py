@@ -23,7 +23,7 @@ import numpy as np
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("sequence", type=Path, help="sequence folder (FORMAT.md)")
+    p.add_argument("sequence", type=Path, help="sequence folder (README, Formats)")
     p.add_argument("--map", type=Path, required=True, help="aerial map of the area (meridian-torch build-map)")
     p.add_argument("-c", "--config", type=Path, default=None, help="config YAML (default: the shipped default)")
     p.add_argument("--set", dest="overrides", action="append", default=[], help="config override key=value")

@@ -25,7 +25,7 @@ CFG = AffinityConfig(parallel_line_pairs="reject")  # the reference semantics; "
 TAN = math.tan(math.radians(20.0))
 
 # ------------------------------------------------------------------------------------------
-# Slow reference: the fact sheet's rules, one pair at a time, in plain Python floats.
+# Slow reference: the affinity rules, one pair at a time, in plain Python floats.
 # ------------------------------------------------------------------------------------------
 
 

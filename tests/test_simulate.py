@@ -1,5 +1,6 @@
-"""The simulator end to end on the tiny world: CLI, determinism, and FORMAT.md conformance
-checked by an independent reader written here from the format text (not our io module)."""
+"""The simulator end to end on the tiny world: CLI, determinism, and conformance to the sequence
+folder format checked by an independent reader written here from the format text (not our io
+module)."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 A hypothesis T_world_odom of submap k against patch p becomes the candidate
 T_world_base = T_world_odom * T_odom_base(t_k) in SE(2), with its probability and its
 quality q = probability / (best probability of the same (submap, patch) pair), the
-reference's "frequency-ratio" (fact sheet 5.1, 5.2). Poses are float64 (3, 3) SE(2) matrices.
+reference's "frequency-ratio". Poses are float64 (3, 3) SE(2) matrices.
 """
 
 from __future__ import annotations

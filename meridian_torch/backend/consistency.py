@@ -1,4 +1,4 @@
-"""The consistency graph between loop-closure candidates and its CLIPPER inliers (fact sheet 5.2, 5.3).
+"""The consistency graph between loop-closure candidates and its CLIPPER inliers.
 
 Two candidates i, j (submaps at path lengths l_i, l_j) are consistent when the relative motion
 they imply, T_world_base_i^-1 T_world_base_j, agrees with the odometry's relative motion

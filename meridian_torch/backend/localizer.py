@@ -1,4 +1,4 @@
-"""Incremental and offline cross-view localization (fact sheet 5.5, 5.6).
+"""Incremental and offline cross-view localization.
 
 States, per new ground submap:
 - "pre" (no global fix yet): match the submap against its place-recognition patches with free

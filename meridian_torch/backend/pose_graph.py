@@ -1,4 +1,4 @@
-"""The pose graph in GTSAM (the only module that imports gtsam; fact sheet 5.4).
+"""The pose graph in GTSAM (the only module that imports gtsam).
 
 One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between consecutive
 frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time

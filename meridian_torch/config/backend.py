@@ -12,7 +12,7 @@ __all__ = ["BackendConfig"]
 
 
 class BackendConfig(StrictModel):
-    """Robust pose graph and incremental localizer (fact sheet sections 5.2-5.7).
+    """Robust pose graph and incremental localizer.
 
     Loop-closure consistency noise grows linearly with the odometry path length l between two
     submaps: sigma_yaw(l) = sigma_yaw_deg + sigma_yaw_deg_per_m * l, sigma_t(l) likewise; the

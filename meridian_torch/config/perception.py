@@ -123,7 +123,7 @@ class SamSegmenterConfig(StrictModel):
 class FastSamConfig(StrictModel):
     """FastSAM (YOLOv8-seg) exported to ONNX by its owner, run with onnxruntime (reference ground segmenter).
 
-    Letterboxing, confidence filter, NMS and prototype masks are ours (fact sheet 3.2 values).
+    Letterboxing, confidence filter, NMS and prototype masks are ours.
     """
 
     weights_path: str | None = Field(

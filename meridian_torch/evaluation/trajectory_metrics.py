@@ -1,4 +1,4 @@
-"""Trajectory and registration metrics (fact sheet 7.1, 7.2; paper section IV).
+"""Trajectory and registration metrics (paper section IV).
 
 - ATE: unaligned 2D RMSE of |xy_est - xy_gt| at the same timestamps (no alignment: both are in
   the world frame), also mean and max; heading error |wrap(yaw_est - yaw_gt)| RMSE, mean, max.

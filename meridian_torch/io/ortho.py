@@ -279,7 +279,7 @@ def _read_geotiff(path: Path) -> Orthophoto:
 def read_orthophoto(path: str | os.PathLike[str]) -> Orthophoto:
     """Read an orthophoto from a sequence folder, its aerial/ folder, a PNG/JPEG or a GeoTIFF.
 
-    PNG/JPEG: 8-bit, georeferenced by `<stem>.json` or `ortho.json` next to it (FORMAT.md).
+    PNG/JPEG: 8-bit, georeferenced by `<stem>.json` or `ortho.json` next to it (README, Formats).
     GeoTIFF: must be north-up with square pixels and, if it has a CRS, a projected metric one;
     1 band is grey (replicated to RGB), 4 bands are RGBA (alpha dropped), bands with RED/GREEN/
     BLUE colour interpretation are used as such. Non-8-bit bands (uint16, float) are linearly
@@ -339,7 +339,7 @@ def _validate_for_writing(ortho: Orthophoto) -> None:
 
 
 def write_orthophoto(folder: str | os.PathLike[str], ortho: Orthophoto) -> None:
-    """Write `folder`/ortho.png and `folder`/ortho.json (FORMAT.md), each atomically."""
+    """Write `folder`/ortho.png and `folder`/ortho.json (README, Formats), each atomically."""
     import cv2
 
     _validate_for_writing(ortho)

@@ -1,4 +1,4 @@
-"""Sequence folders (FORMAT.md): strict reader, whole-folder checker and atomic writer."""
+"""Sequence folders (README, Formats): strict reader, whole-folder checker and atomic writer."""
 
 from __future__ import annotations
 

@@ -128,7 +128,7 @@ class AerialMapper:
         for k, (b, col0, row0) in enumerate(crop_origin_px):
             masks = seg.masks[k][seg.valid[k]]
             h, w = masks.shape[-2:]
-            # Mask pixel centres in map-frame metres (FORMAT.md pixel-centre convention).
+            # Mask pixel centres in map-frame metres (the pixel-centre convention of the README's Formats).
             x0, y0 = _corner_in_map_frame(ortho)
             idx_m, rows, cols = torch.nonzero(masks, as_tuple=True)
             xy = np.stack([

@@ -1,4 +1,4 @@
-"""KITTI odometry sequences -> the sequence folder format (FORMAT.md).
+"""KITTI odometry sequences -> the sequence folder format (README, Formats).
 
 Input: a KITTI odometry sequence folder (`image_2/` left colour images, `velodyne/` scans as
 float32 x y z reflectance, `calib.txt` with P2 and Tr, `times.txt`), an odometry in KITTI's pose

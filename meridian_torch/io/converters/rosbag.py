@@ -1,4 +1,4 @@
-"""ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) -> the sequence folder format (FORMAT.md),
+"""ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) -> the sequence folder format (README, Formats),
 read with the `rosbags` library (no ROS installation).
 
 Topics: a colour image (sensor_msgs/Image rgb8, bgr8, rgba8, bgra8, mono8, or CompressedImage

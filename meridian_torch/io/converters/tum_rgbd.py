@@ -1,4 +1,4 @@
-"""TUM RGB-D benchmark sequences -> the sequence folder format (FORMAT.md).
+"""TUM RGB-D benchmark sequences -> the sequence folder format (README, Formats).
 
 Input: a TUM RGB-D sequence folder (`rgb.txt`, `depth.txt`: `timestamp path` per line;
 `groundtruth.txt` or another trajectory in TUM format for the camera poses) and an orthophoto of

@@ -10,7 +10,7 @@ Only the graph runs in onnxruntime; preprocessing and postprocessing are ours an
    every full-resolution pixel (un-letterboxing and upsampling in one step, "retina masks"),
    cropped to the detection box and thresholded at sigmoid 0.5 (logit 0).
 
-Scores are the detection confidences. Reference settings (fact sheet 3.2): 1024 px, conf 0.2,
+Scores are the detection confidences. Reference settings: 1024 px, conf 0.2,
 IoU 0.9. Not reproduced: FastSAM's adjustment of boxes that nearly cover the whole frame.
 """
 
