@@ -14,7 +14,8 @@ import torch
 from pydantic import ValidationError
 
 from meridian_torch.config.matching import ClipperConfig
-from meridian_torch.matching.clipper import ClipperResult, _densest_exact, inlier_indices, solve_clipper
+from meridian_torch.matching.clipper import ClipperResult, inlier_indices, solve_clipper
+from meridian_torch.matching.clipper.rounding import _densest_exact
 
 ROUNDINGS = ("clipper", "support", "densest")
 DTYPES = (torch.float32, torch.float64)

@@ -26,7 +26,7 @@ from torch import Tensor
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.se2 import se2_inverse, wrap_angle
-from meridian_torch.matching.clipper import Edges, dense_block, restrict_edges, solve_clipper_sparse
+from meridian_torch.matching.clipper.sparse import Edges, dense_block, restrict_edges, solve_clipper_sparse
 
 __all__ = [
     "Edges",
