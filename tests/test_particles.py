@@ -6,14 +6,8 @@ import pytest
 import torch
 
 from meridian_torch.config.matching import ParticleConfig
-from meridian_torch.matching.particles import (
-    concat_problems,
-    patch_seeds,
-    sample_inlier_sets,
-    sample_problem,
-    sampler_problem,
-    support_pruning,
-)
+from meridian_torch.matching.particle_problem import concat_problems, sampler_problem, support_pruning
+from meridian_torch.matching.particles import patch_seeds, sample_inlier_sets, sample_problem
 
 CFG = ParticleConfig(n_particles=24, n_iterations=60)
 

@@ -19,13 +19,8 @@ from meridian_torch.matching.affinity import affinity, affinity_entries
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.hypotheses import Hypotheses, cluster_hypotheses
-from meridian_torch.matching.particles import (
-    InlierSets,
-    concat_problems,
-    patch_seeds,
-    sample_problem,
-    sampler_problem,
-)
+from meridian_torch.matching.particle_problem import concat_problems, sampler_problem
+from meridian_torch.matching.particles import InlierSets, patch_seeds, sample_problem
 from meridian_torch.matching.verification import reweight_hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet, stack_primitive_sets
 
