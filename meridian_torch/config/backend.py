@@ -50,11 +50,8 @@ class BackendConfig(StrictModel):
     attempt_min_inliers: int = Field(
         default=3,
         ge=1,
-        description="gate 1: pre-fix inliers needed before a fix attempt (re-match of all submaps); reference 1. "
-        "An attempt re-matches near the rough trajectory of these inliers, so it tends to confirm them: on the "
-        "KITTI 00 world (300 frames, top-25 place recognition) two chance-consistent candidates seeded attempts "
-        "until one committed a wrong fix (online ATE 464 m) with 1; with 3 no attempt ran. The demo world "
-        "had 5 pre-fix inliers by its first possible attempt, so its fix is unchanged",
+        description="gate 1: pre-fix inlier loop closures needed before a fix attempt (a re-match of all "
+        "submaps; reference 1): fewer let chance-consistent candidates seed wrong fixes",
     )
     fix_min_inliers: int = Field(default=6, ge=1, description="[paper] global fix: >= 6 inlier loop closures")
     fix_min_inlier_fraction: float = Field(

@@ -1,8 +1,7 @@
-"""Validated settings of the segment → primitive conversion (paper / reference defaults).
+"""Validated configuration of the mapping stage: segment → primitive conversion, the aerial map
+builder, ground observations, tracking and submaps.
 
-Only pydantic is imported here so that configs stay cheap to load. Defaults follow the
-reference implementation's `SegmentToPrimitiveConversionParams` with the paper-faithful
-choices (alpha-shape outline, lines never made infinite).
+Only pydantic is imported here so that configs stay cheap to load.
 """
 
 from __future__ import annotations
@@ -15,7 +14,12 @@ __all__ = ["PrimitiveConfig"]
 
 
 class PrimitiveConfig(StrictModel):
-    """How segments become points and lines, and how outline edges fuse into coarse lines."""
+    """How segments become points and lines, and how outline edges fuse into coarse lines.
+
+    Defaults follow the reference implementation's `SegmentToPrimitiveConversionParams` with the
+    paper-faithful choices (alpha-shape outline, lines never made infinite), except
+    `outline_simplify_m` (reference 0).
+    """
 
     # Outline (alpha shape)
     alpha: float = Field(
@@ -47,9 +51,6 @@ class PrimitiveConfig(StrictModel):
     circle_max_fit_error_frac: float = Field(
         default=0.3, gt=0, description="circle accepted if its RMS radial residual < this fraction of the radius"
     )
-    # 0.35 m (below the 0.5 m perpendicular merge tolerance) turns pixel stair-steps into long
-    # edges: with the reference's 0 most line length sits in pieces under the matcher's 2 m
-    # minimum (line recall of lines >= 2 m: 0.15 -> 0.93 on the default world, 0.06 -> 0.62 on kitti0).
     outline_simplify_m: float = Field(
         default=0.35,
         ge=0,
@@ -95,15 +96,15 @@ class AerialMapConfig(StrictModel):
     workers: int = Field(
         default=1,
         ge=1,
-        description="worker processes describing patch batches (CPU only; same map). Classical back ends: set "
-        "it to the number of cores (2 on 2 cores: 1.55x faster for a 600 m x 600 m map, 1.23x for 300 m; "
-        "scripts/bench_aerial.py). Each worker holds its own copy of the orthophoto and the back ends",
+        description="worker processes describing patch batches (CPU only; the same map): classical back ends "
+        "scale with cores, each worker holds its own orthophoto and back ends",
     )
 
 
 class GroundObservationConfig(StrictModel):
     """Per-frame 3D observations: masks -> point clouds with occluded ("border") points (reference
-    `SegmenterParams`; every default is the reference's)."""
+    `SegmenterParams`; every default is the reference's except `pixel_stride`, `max_depth_m` and
+    `occlusion_max_depth_m`)."""
 
     erosion_px: int = Field(default=3, ge=0, description="elliptical mask erosion radius, pixels (kernel 2r+1)")
     pixel_stride: int | None = Field(
@@ -115,10 +116,8 @@ class GroundObservationConfig(StrictModel):
     max_depth_m: float = Field(
         default=15.0,
         gt=0,
-        description="depth cutoff; farther pixels are ignored (paper 10 m, a RealSense-class range). 15 m: within "
-        "10 m a road-following camera sees almost only the road and its borders; on the demo world 15 m gave "
-        "2-9 points and 70-190 lines per submap instead of 0-2 and 30-80, and true-patch registration rose from "
-        "41 to 58 % (known rotation, top-25) and 23 to 33 % (unknown). Set it to your sensor's trustworthy range",
+        description="depth cutoff, m; farther pixels are ignored (paper 10 m, a RealSense-class range). Set it "
+        "to your sensor's trustworthy range",
     )
     voxel_m: float = Field(default=0.1, gt=0, description="voxel downsampling of each observation")
     outlier_neighbours: int = Field(default=10, ge=1, description="statistical outlier removal: neighbours")
@@ -186,9 +185,8 @@ class GroundMapConfig(StrictModel):
     submap_trigger_path_m: float | None = Field(
         default=40.0,
         gt=0,
-        description="also trigger after this much odometry travel since the previous submap if any segment is "
-        "new (None: new-segment count only, as the paper); keeps submaps coming with segmenters that yield "
-        "few segments per frame (classical back end: ~1 submap per 300 m with the count alone)",
+        description="also trigger a submap after this much odometry travel (m) since the previous one if any "
+        "segment is new (None: new-segment count only, as the paper)",
     )
     submap_min_interval_s: float = Field(
         default=5.0, ge=0, description="a submap this soon after the previous one is skipped (newer reference)"

@@ -88,8 +88,9 @@ class AssociationConfig(StrictModel):
 class AffinityConfig(StrictModel):
     """Scoring of the data-association affinity M_DA (`matching.affinity`).
 
-    Defaults are the reference `PrimitiveMatchParams` (paper values sigma_t = 2 m,
-    sigma_theta = 20 deg with eps = sigma).
+    The kernel defaults are the reference `PrimitiveMatchParams` (paper values sigma_t = 2 m,
+    sigma_theta = 20 deg with eps = sigma); `parallel_line_pairs` departs from it ('reject' is the
+    reference).
     """
 
     sigma_t_m: float = Field(default=2.0, gt=0, description="sigma of the distance-difference kernel")
@@ -108,17 +109,9 @@ class AffinityConfig(StrictModel):
     )
     parallel_line_pairs: Literal["reject", "separation"] = Field(
         default="separation",
-        description="near-parallel line pairs: 'reject' = never consistent (reference); 'separation' = "
-        "consistent when both maps' pairs are near-parallel, scored by the angle kernel times the "
-        "distance kernel of the perpendicular separation of the two infinite lines (unsigned without a "
-        "rotation prior, per axis with one; sigma inflated by sin(angle) * the along-line offset of the "
-        "reference points; separations below min_point_separation_m score 0). Pairs near-parallel in "
-        "one map only score 0. Measured with scripts/exp_registration.py (each submap against its true "
-        "patch, < 5 m / 5 deg, mean of seeds 0-2, top-1/5/25 known rotation | top-25 unknown, reject -> "
-        "separation): demo world 22 submaps 9/20/20 | 3 -> 20/38/39 | 18; KITTI 09 (all 477 frames, 28 "
-        "submaps) 6/12/12 | 4 -> 7/12/12 | 7; simulated KITTI 00 (9 submaps) 4/22/26 | 0 -> "
-        "22/44/44 | 7. Not worse anywhere and about twice as good on two of three worlds, hence the default (a "
-        "departure from the paper; 'reject' reproduces it)",
+        description="near-parallel line pairs: 'reject' = never consistent (paper, reference); 'separation' = "
+        "pairs near-parallel in both maps are scored by their perpendicular separation (`matching.affinity`), "
+        "pairs near-parallel in one map only score 0",
     )
     cosine_min: float = Field(default=0.1, description="descriptor cosine at or below this kills an association")
     cosine_max: float = Field(default=0.5, description="cosine at or above this gives the full unary score 1")
@@ -132,16 +125,13 @@ class AffinityConfig(StrictModel):
     dense_max_m: int = Field(
         default=256,
         ge=1,
-        description="`affinity` returns a dense (P, m, m) tensor up to this m, sparse COO above. Both are built "
-        "from the same gated non-zero list (~3.5 % of the pairs at m = 2000); the particle sampler converts to "
-        "sparse and prunes anyway, and a dense batch costs P m^2 4 bytes (400 MB at P = 25, m = 2000)",
+        description="`affinity` returns a dense (P, m, m) tensor up to this many associations m, sparse COO "
+        "above (a dense batch costs P m^2 4 bytes)",
     )
     block_pairs: int = Field(
         default=1 << 20,
         ge=1,
-        description="association pairs gated per row block (bounds peak memory). Measured on 2 loaded cores, "
-        "P = 25, m = 2000: 2^20 took 1.4 s, 2^18 and 2^16 were 10-60x slower (per-op overhead and thread "
-        "synchronisation dominate small blocks)",
+        description="association pairs gated per row block: bounds peak memory; smaller blocks are slower",
     )
 
     def model_post_init(self, context: object, /) -> None:
@@ -157,36 +147,26 @@ class ParticleConfig(StrictModel):
 
     Dynamics, preconditioner, early stopping and rounding follow the reference's
     `LangevinMatcherParams`. The reference runs 1000 particles x 1000 iterations on a GPU; the
-    defaults here are sized for a CPU (see `n_particles` / `n_iterations` for the measurement).
+    defaults here are sized for a CPU (measurements: README, Why the defaults are what they are).
     """
 
     n_particles: int = Field(
         default=256,
         ge=1,
-        description="particles per patch (reference 1000, sized for a GPU). Measured on the demo world's rendered "
-        "submaps against their true patch (scripts/exp_registration.py, 24 submaps, about 2 % true "
-        "associations): known rotation top-1/25 = 17/58 % with 32 particles, 25/83 % with 128, 37/83 % with "
-        "256, 29/83 % with 512; unknown rotation top-25 33 / 54 / 54 / 54 %; matching time 7.8 / 9.5 / 10.6 / "
-        "13.1 s for all variants. An earlier sweep on planted scenes with 35-70 % inliers had found 32 enough: "
-        "real submaps are much harder",
+        description="Langevin particles per patch (reference 1000, sized for a GPU): more find the true set more "
+        "often, at more matching time",
     )
     n_iterations: int = Field(
         default=100,
         ge=2,
-        description="maximum Langevin steps (reference 1000); also the length of the noise annealing schedule. "
-        "Same sweep: 50 steps still found the planted sets but put less mass on them (hard scene 0.16 vs 0.22). On "
-        "rendered KITTI 00 / 09 submaps 50 steps lost 15-26 points of known-rotation top-25 registration success "
-        "(scripts/exp_registration.py; why: matching/particles.py)",
+        description="maximum Langevin steps (reference 1000), also the length of the noise annealing schedule: "
+        "fewer lose registrations (why: matching/particles.py)",
     )
     max_associations: int | None = Field(
         default=128,
         ge=2,
-        description="associations per patch given to the sampler: the best supported by the two-step walk "
-        "count M'(M'1) (`support_pruning`); None = all. Cuts the cost per step ~(m / k)^2 and, by removing "
-        "clutter, raised the particle mass on the true set (planted 70 % scene, 32 x 100: 0.95 at k = 128, "
-        "0.63 at 256; 64 x 200 without pruning at m = 2000: 0.08); 81-89 % of the true associations rank in "
-        "the top 128 of 2000 (the rest are not needed for the pose). 96 or 64 were not better on rendered KITTI 00 / "
-        "09 submaps (64: 7 points less known-rotation top-1 on KITTI 00, mean of 10 seeds)",
+        description="associations per patch given to the sampler, the best supported by the two-step walk count "
+        "M'(M'1) (`support_pruning`); None = all. Cuts the cost per step ~(m / k)^2 and removes clutter",
     )
     step_size: float = Field(default=1.0, gt=0, description="eta; the noise scale is sqrt(eta)")
     rmsprop: bool = Field(default=True, description="RMSprop-style preconditioner (the reference's 'adagrad')")
@@ -220,18 +200,13 @@ class CoarseSearchConfig(StrictModel):
     classes: int = Field(
         default=1,
         ge=1,
-        description="descriptor clusters rasterised as separate grids (1 = geometry only). Measured on the "
-        "KITTI 09 (7 Hz) world's first 16 submaps, single submaps: 4 classes and 1 class both rank the true "
-        "patch at chance or worse (see README, coarse search)",
+        description="descriptor clusters rasterised as separate grids (1 = geometry only)",
     )
     orientation_bins: int = Field(
         default=4,
         ge=0,
         description="line samples go to one raster per orientation bin over [0, pi) (0 = points and lines "
-        "share one raster); points always have their own raster when > 0. KITTI 09 (7 Hz) world, first 16 "
-        "submaps, chain ranks of the true patch among 609: with 0 bins at chance throughout; with 4 bins "
-        "they fall to 63, 57, 37, 13, 4 over the last five submaps (8 bins: 53, 43, 14, 10, 2 at 1.8x "
-        "the cost). 4 m cells lose it (ranks 104-40)",
+        "share one raster; > 0: points have their own); cost grows with the rasters",
     )
     blur_cells: float = Field(default=1.0, ge=0, description="Gaussian blur sigma of both rasters, cells")
     min_window_energy: float = Field(
@@ -258,21 +233,14 @@ class PlaceRecognitionConfig(StrictModel):
         description="'global': top k_global patches by descriptor similarity (paper); 'exhaustive': every patch; "
         "'auto': exhaustive on maps of at most exhaustive_max_patches patches, else coarse; 'near': the patches "
         "overlapping most with a disk around a predicted position; 'coarse': top k_coarse patches of the coarse "
-        "search (`coarse`). Default auto, not the paper's global: cross-view "
-        "place recognition with the classical descriptors ranks the true patch at random (demo world: median rank "
-        "45 of 81), and without the true patch no submap can register; on the demo map exhaustive matching is "
-        "what lets the localizer fix at all (measured: ATE 0.7 m vs a wrong fix with global)",
+        "search (`coarse`)",
     )
     exhaustive_max_patches: int = Field(
         default=1000,
         ge=0,
-        description="'auto' matches every patch up to this map size (about 1 km x 1 km at 60 m / 50 %). "
-        "Matching time before the fix grows linearly with it, about 0.08 s per patch and submap on 2 cores "
-        "(KITTI 09 world, 609 patches: 48 s per submap); after the fix only 'near' patches are matched. "
-        "Measured on the full KITTI 00 / 09 worlds against global top-25: KITTI 09 gets a fix (none with "
-        "global), KITTI 00 fixes after 280 m instead of 530 m with final ATE 1.2 m instead of 1.4 m; the "
-        "real-time factor falls from 0.93 to 0.58 (KITTI 00) and 0.57 to 0.32 (KITTI 09). Lower it when a "
-        "global describer that ranks the true patch well is used (AnyLoc) or real time matters more",
+        description="'auto' matches every patch of maps up to this many patches (about 1 km x 1 km at 60 m / "
+        "50 %): matching time before the fix grows linearly with it; lower it with a describer that ranks "
+        "the true patch well (AnyLoc) or when real time matters more",
     )
     k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
     k_coarse: int = Field(default=25, ge=1, description="patches per submap in 'coarse' mode")
@@ -290,11 +258,8 @@ class RegistrationConfig(StrictModel):
     line_direction_weight: float = Field(
         default=25.0,
         ge=0,
-        description="weight (m^2) of sin^2(line angle error) against a squared offset of 1 m. A segment of "
-        "length L scored by the point-to-line distances of its two endpoints weighs its direction by "
-        "(L/2)^2, so 25 m^2 stands for ~10 m lines. The reference's Arun cross-covariance implies 1 m^2, "
-        "which under-weights directions: on noisy synthetic sets (0.3 m endpoint noise) 25 m^2 cut the p90 "
-        "rotation error of lines-only sets from 2.8 to 1.8 deg and never did worse",
+        description="weight (m^2) of sin^2(line angle error) against a squared offset of 1 m; a line of "
+        "length L scored by its endpoints weighs its direction by (L/2)^2 (reference: 1 m^2)",
     )
     information_eps: float = Field(
         default=0.05,
@@ -318,21 +283,9 @@ __all__ += ["RegistrationConfig"]
 
 
 class VerificationConfig(StrictModel):
-    """Geometric verification of hypotheses (`matching.verification`, not in the paper).
-
-    Measured on the demo world's 24 rendered submaps against their true patch (scripts/
-    exp_registration.py, 256 particles, seed 0): ranking the 50 heaviest clusters by mass x alignment
-    instead of mass alone gave unknown-rotation top-1 / 25 = 29 / 54 % instead of 12 / 54 %, known
-    rotation 42 / 83 % instead of 37 / 83 %. The tolerances are first choices (the matching sigmas'
-    scale), not tuned. Scoring ground lines in pieces of at most 4 m, each graded by closeness,
-    instead of whole lines all-or-nothing: demo top-1 (mean of seeds 0-2) 35 -> 40 % known
-    rotation, 26 -> 32 % unknown; in the demo run the final pass's top-1 50 -> 67 % of submaps at
-    the same final ATE (0.64 -> 0.67 m; ungraded pieces: 63 % but 0.82 m); +6 % matching time
-    (2 m pieces: same quality, +22 %). Full KITTI worlds with every patch matched before the fix
-    (scripts/exp_localization.py): the same fixes; final-pass top-1 45 -> 46 % (00) and
-    40 -> 47 % (09); ATE online / final 1.73 / 1.17 -> 1.63 / 1.23 m (00), 2.70 / 0.94 ->
-    2.18 / 0.85 m (09). The cost: with top-25 place recognition instead (exhaustive_max_patches=128)
-    the KITTI 00 world gets no fix, where whole lines got one after 530 m.
+    """Geometric verification of hypotheses (`matching.verification`, not in the paper): the
+    heaviest clusters of a patch are re-ranked by particle mass x alignment of the posed ground
+    primitives with the aerial ones (measurements: README, Why the defaults are what they are).
     """
 
     enabled: bool = Field(
@@ -381,9 +334,7 @@ class MatchConfig(StrictModel):
     patch_chunk: int = Field(
         default=8,
         ge=1,
-        description="patches whose affinities are built together (bounds peak memory; results do not depend on "
-        "it). Their pruned problems are sampled in one batch with those of the other chunks. Bench case (25 "
-        "patches, m = 2000, 1 thread): the sparse affinity of all 25 at once raised the peak by ~370 MB",
+        description="patches whose affinities are built together: bounds peak memory, results do not depend on it",
     )
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     hypotheses_per_patch: int = Field(default=25, ge=1, description="L, clustered hypotheses kept per patch")
