@@ -14,13 +14,13 @@ from pydantic import ValidationError
 from scipy.spatial import Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
-from meridian_torch.mapping import segment_to_primitives as s2p
-from meridian_torch.mapping.segment_to_primitives import (
+from meridian_torch.mapping.primitives import line_fusion, outline
+from meridian_torch.mapping.primitives.conversion import fit_circle, segments_to_primitives
+from meridian_torch.mapping.primitives.line_fusion import fuse_indexed_lines, fuse_lines, mergeable_line_pairs
+from meridian_torch.mapping.primitives.outline import (
     alpha_shape_outline,
-    fit_circle,
-    fuse_lines,
-    mergeable_line_pairs,
-    segments_to_primitives,
+    inside_box,
+    simplified_outline_edges,
 )
 from meridian_torch.types import LineKind
 
@@ -270,7 +270,7 @@ def test_outline_without_band_equals_outline_with_band(monkeypatch):
         pts = g[inside] + rng.uniform(-300.0, 300.0, 2)
         outlines = []
         for band_min in (10**9, 0):  # never / always the band
-            monkeypatch.setattr(s2p, "BAND_MIN_POINTS", band_min)
+            monkeypatch.setattr(outline, "BAND_MIN_POINTS", band_min)
             outlines.append(alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m))
         assert (outlines[0] is None) == (outlines[1] is None)
         if outlines[0] is not None:
@@ -291,10 +291,10 @@ def _fuse_full_sweeps(original, table, rows, cfg):
     for _ in range(cfg.line_merge_max_sweeps):
         if len(current) < 2:
             break
-        pairs, sin = s2p._mergeable(current, table, rows, cfg)
+        pairs, sin = line_fusion._mergeable(current, table, rows, cfg)
         if len(pairs) == 0:
             break
-        merged = s2p._greedy_matching(pairs, sin, len(current))
+        merged = line_fusion._greedy_matching(pairs, sin, len(current))
         a, b = merged[:, 0], merged[:, 1]
         mixed = rows[a] != rows[b]
         if mixed.any():
@@ -311,7 +311,7 @@ def _fuse_full_sweeps(original, table, rows, cfg):
         label = remap[label]
         current, rows = current[keep], rows[keep]
         groups = np.sort(remap[a])
-        current[groups] = s2p._refit(original, label, groups)
+        current[groups] = line_fusion._refit(original, label, groups)
     return current, table, rows, label
 
 
@@ -332,7 +332,7 @@ def test_incremental_fusion_equals_full_sweeps(seed: int):
     lines, seg_of = np.concatenate(segments), np.concatenate(seg_of)
     clusters = np.eye(8)[rng.integers(0, 3, 12)]  # several segments per class: mixed merges happen
     desc = torch.nn.functional.normalize(torch.from_numpy(clusters + rng.normal(0.0, 0.08, (12, 8))), dim=-1)
-    fast = s2p._fuse(lines, desc, seg_of, CFG)
+    fast = fuse_indexed_lines(lines, desc, seg_of, CFG)
     slow = _fuse_full_sweeps(lines, desc, seg_of, CFG)
     assert len(fast[0]) < len(lines) // 3  # the scene exercises several sweeps
     assert np.array_equal(fast[0], slow[0]) and np.array_equal(fast[3], slow[3])
@@ -355,7 +355,7 @@ def test_simplified_outline_keeps_the_sides(angle: float):
     # the simplified edges are outline vertices, lie inside the box, and stay within tolerance
     ring = alpha_shape_outline(square, CFG.alpha, CFG.alpha_grid_m)
     box = np.array([-np.inf, np.inf, -np.inf, np.inf])
-    edges = s2p._simplified_outline_edges(ring, box, 0.1)
+    edges = simplified_outline_edges(ring, box, 0.1)
     assert len(edges) < len(ring) / 3 and np.array_equal(edges[1:, 0], edges[:-1, 1])
     assert {tuple(p) for p in edges.reshape(-1, 2)} <= {tuple(p) for p in ring}
     simplified = shapely.LineString(np.concatenate([edges[:, 0], edges[-1:, 1]]))
@@ -366,9 +366,9 @@ def test_simplified_outline_is_cut_at_the_border_box():
     ring = alpha_shape_outline(grid(0.0, 20.0, 0.0, 20.0), CFG.alpha, CFG.alpha_grid_m)
     box = np.array([-5.0, 19.5, -5.0, 25.0])  # the side x = 20 is outside
     plain = np.stack([ring, np.roll(ring, -1, axis=0)], axis=1)
-    plain = plain[s2p._inside(plain, box).all(axis=1)]
-    edges = s2p._simplified_outline_edges(ring, box, 0.1)
-    assert s2p._inside(edges, box).all() and len(edges) < len(plain) / 3
+    plain = plain[inside_box(plain, box).all(axis=1)]
+    edges = simplified_outline_edges(ring, box, 0.1)
+    assert inside_box(edges, box).all() and len(edges) < len(plain) / 3
     covered = shapely.union_all(shapely.linestrings(edges))
     assert abs(covered.length - shapely.union_all(shapely.linestrings(plain)).length) < 0.05
     assert covered.length > 3 * 19.0  # three sides, none lost with its last vertex

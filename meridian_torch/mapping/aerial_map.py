@@ -37,7 +37,7 @@ from meridian_torch.config.perception import active_backend_dict
 from meridian_torch.io.atomic import atomic_path, write_text_atomic
 from meridian_torch.io.map_file import save_aerial_map
 from meridian_torch.io.ortho import Orthophoto, find_orthophoto, read_orthophoto
-from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
+from meridian_torch.mapping.primitives.conversion import segments_to_primitives
 from meridian_torch.mapping.tiling import crop_offsets, tile_image
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter

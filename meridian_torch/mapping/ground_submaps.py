@@ -43,7 +43,7 @@ from meridian_torch.mapping.ground_observations import (
     voxel_hash,
 )
 from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker, TrackedSegment
-from meridian_torch.mapping.segment_to_primitives import segments_to_primitives
+from meridian_torch.mapping.primitives.conversion import segments_to_primitives
 from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = ["SubmapTrigger", "SubmapGeometry", "submap_primitives", "artifact_line_mask", "thin_by_distance"]
