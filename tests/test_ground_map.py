@@ -106,7 +106,7 @@ def test_frames_in_threads_give_the_same_segments(tiny: Path, monkeypatch: pytes
     """Per-frame segmentation and 3D work in 4 threads equal the plain loop, bitwise."""
     from meridian_torch.core import parallel
     from meridian_torch.mapping import ground_observations
-    from meridian_torch.perception import classical
+    from meridian_torch.perception.classical import segmenter
 
     reader = SequenceReader(tiny)
     frames = [reader[i] for i in range(12)]
@@ -116,7 +116,7 @@ def test_frames_in_threads_give_the_same_segments(tiny: Path, monkeypatch: pytes
             return parallel.thread_map(fn, items, threads)
 
         monkeypatch.setattr(ground_observations, "thread_map", fixed)
-        monkeypatch.setattr(classical, "thread_map", fixed)
+        monkeypatch.setattr(segmenter, "thread_map", fixed)
         mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
         mapper.add_frames(frames)
         trackers.append(mapper.tracker)

@@ -7,13 +7,13 @@ import torch
 from pydantic import ValidationError
 
 from meridian_torch.config.perception import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
-from meridian_torch.perception.classical import (
-    ClassicalSegmenter,
+from meridian_torch.perception.classical.describers import (
     ColourTextureDescriber,
     ColourTextureGlobalDescriber,
-    PixelFeatures,
     masked_mean,
 )
+from meridian_torch.perception.classical.pixel_features import PixelFeatures
+from meridian_torch.perception.classical.segmenter import ClassicalSegmenter
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 
@@ -176,7 +176,7 @@ def test_shift_and_add_blur_equals_a_depthwise_convolution(sigma: float) -> None
 
     import torch.nn.functional as F
 
-    from meridian_torch.perception.classical import _gaussian_blur
+    from meridian_torch.perception.classical.pixel_features import _gaussian_blur
 
     x = torch.rand(3, 2, 23, 31, generator=torch.Generator().manual_seed(1))
     r = max(1, math.ceil(3 * sigma))
@@ -191,7 +191,7 @@ def test_shift_and_add_blur_equals_a_depthwise_convolution(sigma: float) -> None
 
 @pytest.mark.parametrize("circular", [True, False])
 def test_soft_bins_equal_a_per_bin_loop(circular: bool) -> None:
-    from meridian_torch.perception.classical import _soft_bins
+    from meridian_torch.perception.classical.pixel_features import _soft_bins
 
     bins = 5
     value = torch.rand(2, 7, 9, generator=torch.Generator().manual_seed(2)) * (bins if circular else bins - 1)

@@ -36,7 +36,7 @@ __all__ = [
 
 
 def _classical_segmenter(cfg: SegmenterConfig) -> Segmenter:
-    from meridian_torch.perception.classical import ClassicalSegmenter
+    from meridian_torch.perception.classical.segmenter import ClassicalSegmenter
 
     return ClassicalSegmenter(**cfg.classical.model_dump())
 
@@ -70,20 +70,20 @@ def _fastsam_segmenter(cfg: SegmenterConfig) -> Segmenter:
 
 
 def _pixel_features(cfg: PixelFeatureConfig) -> Any:
-    from meridian_torch.perception.classical import PixelFeatures
+    from meridian_torch.perception.classical.pixel_features import PixelFeatures
 
     return PixelFeatures(**cfg.model_dump(exclude={"colour_weight", "texture_weight"}))
 
 
 def _classical_segment_describer(cfg: DescriptorConfig) -> SegmentDescriber:
-    from meridian_torch.perception.classical import ColourTextureDescriber
+    from meridian_torch.perception.classical.describers import ColourTextureDescriber
 
     c = cfg.classical
     return ColourTextureDescriber(_pixel_features(c), colour_weight=c.colour_weight, texture_weight=c.texture_weight)
 
 
 def _classical_global_describer(cfg: GlobalDescriptorConfig) -> GlobalDescriber:
-    from meridian_torch.perception.classical import ColourTextureGlobalDescriber
+    from meridian_torch.perception.classical.describers import ColourTextureGlobalDescriber
 
     c = cfg.classical
     return ColourTextureGlobalDescriber(
