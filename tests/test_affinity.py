@@ -319,7 +319,7 @@ def test_affinity_equals_loop(seed: int, with_prior: bool) -> None:
     ground = random_scene(gen, 9, 9)
     patches = [noisy_patch(ground, gen, 7, 8, 3), noisy_patch(ground, gen, 4, 3, 2), noisy_patch(ground, gen, 9, 9, 0)]
     batch = stack_primitive_sets(patches)
-    assoc = putative_associations(ground, batch, k_prim=3)
+    assoc = putative_associations(ground, batch, k_prim=3, direction="ground_to_aerial", min_line_length_m=2.0)
     prior = [float(x) for x in torch.rand(3, generator=gen, dtype=torch.float64) * 6] if with_prior else None
     prior_t = torch.tensor(prior, dtype=torch.float64) if prior is not None else None
     # Small blocks so that several row blocks, both types and the block seams are exercised.
@@ -349,7 +349,7 @@ def test_parallel_separation_equals_loop(seed: int, with_prior: bool) -> None:
         yaws.append(float(torch.rand((), generator=torch.Generator().set_state(gen.get_state()))) * 2 * math.pi)
         patches.append(noisy_patch(ground, gen, 3, n_lines, n_extra))
     batch = stack_primitive_sets(patches)
-    assoc = putative_associations(ground, batch, k_prim=3)
+    assoc = putative_associations(ground, batch, k_prim=3, direction="ground_to_aerial", min_line_length_m=2.0)
     # A prior near the true heading, so that line associations survive its direction test.
     prior = [y + 0.1 for y in yaws] if with_prior else None
     prior_t = torch.tensor(prior, dtype=torch.float64) if prior is not None else None

@@ -7,8 +7,14 @@ import math
 import pytest
 import torch
 
+from meridian_torch.config.matching import AssociationConfig
 from meridian_torch.matching.associations import putative_associations
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
+
+
+def _settings(**overrides) -> dict:
+    """The shipped association settings (the config's defaults) with `overrides`."""
+    return {**AssociationConfig().model_dump(), **overrides}
 
 
 def random_set(n_points: int, n_lines: int, dim: int, gen: torch.Generator, short_fraction: float = 0.3) -> PrimitiveSet:
@@ -76,7 +82,8 @@ def test_batched_topk_equals_loop(direction: str, seed: int) -> None:
     # Different sizes per patch, so the batch carries padding on both types.
     patches = [random_set(n_p, n_l, 16, gen) for n_p, n_l in ((12, 10), (3, 2), (7, 14), (0, 5))]
     k = 4
-    assoc = putative_associations(ground, stack_primitive_sets(patches), k_prim=k, direction=direction)
+    batch = stack_primitive_sets(patches)
+    assoc = putative_associations(ground, batch, k_prim=k, direction=direction, min_line_length_m=2.0)
     ref = loop_reference(ground, patches, k, direction == "union", 2.0)
     for p in range(len(patches)):
         v = assoc.valid[p]
@@ -111,12 +118,12 @@ def test_min_line_length_filter_and_kinds() -> None:
         line_descriptors=d,
         line_segment_ids=torch.arange(4),
     )
-    assoc = putative_associations(lines, stack_primitive_sets([lines]), k_prim=4)
+    assoc = putative_associations(lines, stack_primitive_sets([lines]), **_settings(k_prim=4))
     used = assoc.pairs[0][assoc.valid[0]]
     # The 1 m segment (index 0) is gone on both sides; the 1 m ray and infinite line stay.
     assert not (used == 0).any()
     assert set(used[:, 0].tolist()) == {1, 2, 3} and set(used[:, 1].tolist()) == {1, 2, 3}
-    assoc = putative_associations(lines, stack_primitive_sets([lines]), k_prim=4, min_line_length_m=0.5)
+    assoc = putative_associations(lines, stack_primitive_sets([lines]), **_settings(k_prim=4, min_line_length_m=0.5))
     assert 0 in assoc.pairs[0][assoc.valid[0]][:, 0].tolist()
 
 
@@ -124,7 +131,7 @@ def test_k_larger_than_candidates_and_empty_types() -> None:
     gen = torch.Generator().manual_seed(5)
     ground = random_set(3, 0, 8, gen)
     patches = [random_set(2, 4, 8, gen), random_set(5, 1, 8, gen)]
-    assoc = putative_associations(ground, stack_primitive_sets(patches), k_prim=20)
+    assoc = putative_associations(ground, stack_primitive_sets(patches), **_settings(k_prim=20))
     assert assoc.n_point_assoc == assoc.size  # no ground lines: no line block
     assert assoc.valid.sum(1).tolist() == [3 * 2, 3 * 5]
 
@@ -133,6 +140,6 @@ def test_rejects_bad_arguments() -> None:
     gen = torch.Generator().manual_seed(0)
     s = random_set(2, 2, 4, gen)
     with pytest.raises(ValueError):
-        putative_associations(s, stack_primitive_sets([s]), k_prim=0)
+        putative_associations(s, stack_primitive_sets([s]), **_settings(k_prim=0))
     with pytest.raises(ValueError):
-        putative_associations(s, stack_primitive_sets([s]), direction="aerial_to_ground")  # type: ignore[arg-type]
+        putative_associations(s, stack_primitive_sets([s]), **_settings(direction="aerial_to_ground"))

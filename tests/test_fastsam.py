@@ -12,6 +12,7 @@ from scipy.ndimage import map_coordinates
 from torch import nn
 
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.config.perception import FastSamConfig
 from meridian_torch.errors import ConfigError, ModelWeightsError
 from meridian_torch.export.onnx import export_checked
 from meridian_torch.export.tiny_yolo_seg import export_tiny_yolo_seg
@@ -25,6 +26,11 @@ from meridian_torch.perception.neural.fastsam import (
 )
 
 pytest.importorskip("onnxruntime")
+
+
+def _settings(**overrides) -> dict:
+    """The shipped segmenter settings (the config's defaults) with `overrides`."""
+    return {**FastSamConfig().model_dump(exclude={"weights_path", "random_weights_seed"}), **overrides}
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -159,7 +165,7 @@ def scripted_graph(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_scripted_graph_masks_land_where_the_geometry_says(scripted_graph: Path) -> None:
-    segmenter = FastSamSegmenter.from_file(scripted_graph, imgsz=256)
+    segmenter = FastSamSegmenter.from_file(scripted_graph, **_settings(imgsz=256))
     seg = segmenter.segment(torch.rand(2, 3, 72, 128), None)  # fixed batch 1: two graph calls
     expected = torch.zeros(2, 72, 128, dtype=torch.bool)
     expected[0, 12:32, 20:40] = True
@@ -175,12 +181,12 @@ def test_graph_problems_are_clear_errors(tmp_path: Path, scripted_graph: Path) -
     with pytest.raises(ModelWeightsError, match="FastSAM ONNX graph not found: .*missing.onnx"):
         FastSamSegmenter.from_file(tmp_path / "missing.onnx")
     with pytest.raises(ConfigError, match="256x256 px.*imgsz is 1024"):
-        FastSamSegmenter.from_file(scripted_graph, imgsz=1024)
+        FastSamSegmenter.from_file(scripted_graph, **_settings(imgsz=1024))
     one_output = tmp_path / "one.onnx"
     export_checked(nn.Conv2d(3, 8, 3), (torch.rand(1, 3, 64, 64),), one_output, input_names=["images"],
                    output_names=["out"])
     with pytest.raises(ModelWeightsError, match="expected two outputs"):
-        FastSamSegmenter.from_file(one_output, imgsz=64)
+        FastSamSegmenter.from_file(one_output, **_settings(imgsz=64))
     cfg = load_config(None, ["perception.ground_segmenter.backend=fastsam"])
     with pytest.raises(ConfigError, match="fastsam.weights_path"):
         build_segmenter(cfg.perception.ground_segmenter)
@@ -205,7 +211,7 @@ def test_tiny_random_model_through_the_factory_keeps_the_protocol() -> None:
 
 def test_dynamic_graph_batch_equals_single_images(tmp_path: Path) -> None:
     path = export_tiny_yolo_seg(tmp_path / "tiny_dynamic.onnx", seed=4, imgsz=256, dynamic=True)
-    segmenter = FastSamSegmenter.from_file(path, imgsz=256)
+    segmenter = FastSamSegmenter.from_file(path, **_settings(imgsz=256))
     assert segmenter.input_hw is None and segmenter.fixed_batch is None
     images = torch.rand(3, 3, 60, 100, generator=torch.Generator().manual_seed(5))
     batch = segmenter.segment(images, None)

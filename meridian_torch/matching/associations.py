@@ -130,9 +130,9 @@ def putative_associations(
     ground: PrimitiveSet,
     aerial: PrimitiveBatch,
     *,
-    k_prim: int = 20,
-    direction: Direction = "ground_to_aerial",
-    min_line_length_m: float = 2.0,
+    k_prim: int,
+    direction: Direction,
+    min_line_length_m: float,
 ) -> Associations:
     """Semantic K-NN associations of one ground submap against every patch of `aerial`.
 

@@ -154,9 +154,9 @@ def cluster_hypotheses(
     ground: PrimitiveSet,
     aerial: PrimitiveBatch,
     *,
-    n_hypotheses: int = 25,
-    translation_m: float = 1.0,
-    rotation_deg: float = 5.0,
+    n_hypotheses: int,
+    translation_m: float,
+    rotation_deg: float,
     registration: RegistrationConfig | None = None,
 ) -> Hypotheses:
     """Register, cluster and rank the inlier sets of P patches into L = n_hypotheses hypotheses.

@@ -58,7 +58,7 @@ def vlad(tokens: torch.Tensor, centers: torch.Tensor, valid: torch.Tensor | None
     return F.normalize(F.normalize(residuals, dim=-1).flatten(1), dim=-1)
 
 
-def gem(tokens: torch.Tensor, p: float = 3.0, valid: torch.Tensor | None = None) -> torch.Tensor:
+def gem(tokens: torch.Tensor, p: float, valid: torch.Tensor | None = None) -> torch.Tensor:
     """Generalized mean over tokens (B, N, D) -> (B, D), L2-normalized (DINO-GeM, p = 3 in the reference).
 
     m = mean_n sign(f) |f|^p (= mean f^3 for p = 3), d = sign(m) |m|^(1/p) with |m| >= 1e-12.
@@ -86,7 +86,7 @@ class AnyLocFacet(nn.Module):
     Only blocks 0..layer run.
     """
 
-    def __init__(self, backbone: DinoVisionTransformer, layer: int, facet: Facet = "value") -> None:
+    def __init__(self, backbone: DinoVisionTransformer, layer: int, facet: Facet) -> None:
         super().__init__()
         if not -backbone.depth <= layer < backbone.depth:
             raise ValueError(f"layer {layer} out of range for a {backbone.depth}-block DINOv2")

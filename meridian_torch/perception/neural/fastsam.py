@@ -176,17 +176,21 @@ def prototype_masks(
 
 
 class FastSamSegmenter:
-    """Segmenter over an ONNX FastSAM / YOLOv8-seg graph (one image input, predictions and prototypes out)."""
+    """Segmenter over an ONNX FastSAM / YOLOv8-seg graph (one image input, predictions and prototypes out).
+
+    The settings are those of `config.perception.FastSamConfig` (defaults live there).
+    """
 
     def __init__(
         self,
         session: Any,
         source: str,
-        imgsz: int = 1024,
-        conf: float = 0.2,
-        iou: float = 0.9,
-        max_det: int = 300,
-        stride: int = 32,
+        *,
+        imgsz: int,
+        conf: float,
+        iou: float,
+        max_det: int,
+        stride: int,
     ) -> None:
         from meridian_torch.core.onnx_runtime import graph_signature
 

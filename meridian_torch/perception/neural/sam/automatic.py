@@ -107,18 +107,22 @@ class GeneratedMasks:
 
 
 class AutomaticMaskGenerator:
-    """Segment everything in images with a point grid of prompts (the official generator's method)."""
+    """Segment everything in images with a point grid of prompts (the official generator's method).
+
+    The settings are those of `config.perception.SamSegmenterConfig` (defaults live there).
+    """
 
     def __init__(
         self,
         sam: Sam,
-        points_per_side: int = 32,
-        points_per_batch: int = 64,
-        encoder_batch_size: int = 1,
-        pred_iou_thresh: float = 0.88,
-        stability_score_thresh: float = 0.95,
-        stability_score_offset: float = 1.0,
-        box_nms_thresh: float = 0.7,
+        *,
+        points_per_side: int,
+        points_per_batch: int,
+        encoder_batch_size: int,
+        pred_iou_thresh: float,
+        stability_score_thresh: float,
+        stability_score_offset: float,
+        box_nms_thresh: float,
     ) -> None:
         self.sam = sam
         self.points_per_side = points_per_side
@@ -216,7 +220,7 @@ class SamSegmenter:
     `meters_per_pixel` is not used. Scores are the predicted IoU, clipped to [0, 1].
     """
 
-    def __init__(self, generator: AutomaticMaskGenerator, downsample_factor: float = 5.0) -> None:
+    def __init__(self, generator: AutomaticMaskGenerator, downsample_factor: float) -> None:
         self.generator = generator
         self.downsample_factor = downsample_factor
 
