@@ -36,10 +36,10 @@ particle counts summed, and the sets are ranked by J(S) = 1_S' M 1_S / |S| (unpe
 Pruning: before sampling, each patch keeps its `max_associations` best supported associations
 (`particle_problem.support_pruning`, two-step walk counts on the affinity graph); masks are
 reported over all m.
-Particles x iterations on a CPU: the `ParticleConfig` defaults and the measurement behind them
-are in its field descriptions. Early stopping rarely fires before T, and fewer steps are no
-cure: the preconditioner's first average is the huge penalty gradient of the dense random
-start (|g| ~ 10^4 against ~10^2 later), so the effective step grows from ~0.02 to ~1 only over
+Particles x iterations on a CPU: the defaults are `ParticleConfig`'s, the measurements behind
+them in the README (Why the defaults are what they are). Early stopping rarely fires before T,
+and fewer steps are no cure: the preconditioner's first average is the huge penalty gradient of
+the dense random start (|g| ~ 10^4 against ~10^2 later), so the effective step grows from ~0.02 to ~1 only over
 the whole schedule (the mean objective turns positive only after ~40 of 100 steps). Measured on the KITTI
 00 / 09 worlds' rendered submaps (each against its true patch): 50 steps (also with alpha =
 0.81, the same schedule compressed) lost 15-26 points of known-rotation top-25 success, a

@@ -43,7 +43,7 @@ distances, line angles; plus q_i q_j) selects the few per cent of pairs that can
 non-zero, and the exact scores run on those only, as flat index lists. This made the bench case
 (P = 25, m = 2000) about 15x faster than scoring every pair. `affinity_matrix` returns a dense (P, m, m) tensor,
 `affinity_matrix_sparse` a coalesced sparse COO (P, m, m) tensor and `affinity` picks the form
-by `AffinityConfig.dense_max_m` (see its description for the measurement behind the default).
+by `AffinityConfig.dense_max_m` (the measurement behind the default: README, Why the defaults).
 
 Modules: `lines` (bounded-line geometry), `scores` (the kernel, primitive-pair tables and pair
 scores), `gather` (the associations' geometry, gate tables and unary scores), `blocks` (the
