@@ -24,8 +24,7 @@ from skimage.morphology import skeletonize
 
 from meridian_torch.config.sim import ClassRasterConfig, WorldConfig
 from meridian_torch.errors import SimulationError
-from meridian_torch.sim.classes import BASE_COLOURS, REGION_CLASSES, SimClass, class_by_name
-from meridian_torch.sim.procedural import (
+from meridian_torch.sim.canvas import (
     CAR_SIZE_M,
     Canvas,
     car_colour,
@@ -35,6 +34,7 @@ from meridian_torch.sim.procedural import (
     scatter_objects,
     smooth_noise,
 )
+from meridian_torch.sim.classes import BASE_COLOURS, REGION_CLASSES, SimClass, class_by_name
 from meridian_torch.sim.world import World
 
 __all__ = ["world_from_class_raster", "read_class_raster"]

@@ -15,17 +15,17 @@ from scipy.spatial import cKDTree
 
 from meridian_torch.config.sim import OrthoRenderConfig
 from meridian_torch.io.ortho import Orthophoto
-from meridian_torch.sim.classes import BASE_COLOURS, SimClass
-from meridian_torch.sim.ground_truth import nearest_ground_index
-from meridian_torch.sim.procedural import (
+from meridian_torch.sim.canvas import (
     CAR_SIZE_M,
     Canvas,
     car_colour,
     rect_polygon,
-    road_samples,
     scatter_objects,
     smooth_noise,
 )
+from meridian_torch.sim.classes import BASE_COLOURS, SimClass
+from meridian_torch.sim.ground_truth import nearest_ground_index
+from meridian_torch.sim.roads import road_samples
 from meridian_torch.sim.world import World
 
 __all__ = ["render_orthophoto"]

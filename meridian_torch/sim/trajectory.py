@@ -15,9 +15,10 @@ from meridian_torch.errors import SimulationError
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.poses import read_kitti, read_tum
+from meridian_torch.sim.canvas import CAR_SIZE_M
 from meridian_torch.sim.classes import SimClass
 from meridian_torch.sim.ground_truth import ground_layer
-from meridian_torch.sim.procedural import CAR_SIZE_M, road_graph
+from meridian_torch.sim.roads import road_graph
 from meridian_torch.sim.world import World
 
 __all__ = ["plan_drive", "load_trajectory", "frame_times", "kitti_to_base"]
