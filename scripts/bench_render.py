@@ -20,7 +20,8 @@ import torch
 from meridian_torch.config.sim import CameraConfig, GroundRenderConfig, OrthoRenderConfig, WorldConfig
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.runtime import peak_rss_mib
-from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
+from meridian_torch.sim.camera import camera_model_from_config
+from meridian_torch.sim.ground_render import GroundRenderer
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world
 

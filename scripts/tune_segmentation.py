@@ -38,8 +38,9 @@ from meridian_torch.config.sim import (
 from meridian_torch.perception.classical.describers import ColourTextureDescriber
 from meridian_torch.perception.classical.pixel_features import PixelFeatures
 from meridian_torch.perception.classical.segmenter import ClassicalSegmenter
+from meridian_torch.sim.camera import camera_model_from_config
 from meridian_torch.sim.classes import OBJECT_CLASSES
-from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
+from meridian_torch.sim.ground_render import GroundRenderer
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.procedural import generate_world
 from meridian_torch.sim.trajectory import plan_drive

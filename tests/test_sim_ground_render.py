@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from meridian_torch.config.sim import CameraConfig, GroundRenderConfig
-from meridian_torch.sim.ground_render import NO_CLASS, GroundRenderer, camera_model_from_config
+from meridian_torch.sim.camera import camera_model_from_config
+from meridian_torch.sim.ground_render import NO_CLASS, GroundRenderer
 from meridian_torch.sim.world import World
 
 RES = 0.2

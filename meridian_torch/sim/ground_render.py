@@ -33,14 +33,11 @@ import math
 import numpy as np
 import torch
 
-from meridian_torch.config.sim import CameraConfig, GroundRenderConfig
+from meridian_torch.config.sim import GroundRenderConfig
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.sim.world import World
 
-__all__ = ["camera_model_from_config", "GroundRenderer", "R_BASE_OPTICAL", "NO_CLASS"]
-
-# Columns are the optical axes (x right, y down, z forward) expressed in the base frame (x forward, y left, z up).
-R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+__all__ = ["GroundRenderer", "NO_CLASS"]
 
 NO_CLASS = 255  # label of sky pixels in render_labels
 
@@ -50,46 +47,6 @@ _VOID_HEIGHT = -1.0e4  # outside the world raster: nothing to hit
 _SLOPE_LIMIT = 1.0e3  # |b| clamp; 89.94 deg below or above the horizon
 _WALL_EPS_M = 1e-3  # ray this far below a cell top at its entry face = wall hit
 _GAMMA = 1.0 / 2.2  # albedos are linear; images are stored display-encoded
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def camera_model_from_config(cfg: CameraConfig) -> CameraModel:
-    """Pinhole model of `cfg`: square pixels from the horizontal FOV, principal point at the image centre.
-
-    Pixel centres are at integer coordinates (OpenCV), so the centre is ((W-1)/2, (H-1)/2).
-    The mount rotation is roll-pitch-yaw about the base axes, R = Rz(yaw) Ry(pitch) Rx(roll);
-    a positive rotation about the base's y (left) axis turns the forward axis down, so
-    positive pitch looks down as the config documents.
-    """
-    f = 0.5 * cfg.width / math.tan(math.radians(cfg.hfov_deg) / 2.0)
-    roll, pitch, yaw = (math.radians(v) for v in cfg.mount_rpy_deg)
-    T = np.eye(4)
-    T[:3, :3] = _rot_z(yaw) @ _rot_y(pitch) @ _rot_x(roll) @ R_BASE_OPTICAL
-    T[:3, 3] = cfg.mount_xyz
-    return CameraModel(
-        width=cfg.width,
-        height=cfg.height,
-        fx=f,
-        fy=f,
-        cx=(cfg.width - 1) / 2.0,
-        cy=(cfg.height - 1) / 2.0,
-        depth_scale=cfg.depth_scale,
-        T_base_camera=T,
-    )
 
 
 def _level_frames(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

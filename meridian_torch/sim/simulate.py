@@ -14,8 +14,9 @@ from meridian_torch.config.sim import SimConfig
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.sequence import SequenceWriter
+from meridian_torch.sim.camera import camera_model_from_config
 from meridian_torch.sim.from_raster import world_from_class_raster
-from meridian_torch.sim.ground_render import GroundRenderer, camera_model_from_config
+from meridian_torch.sim.ground_render import GroundRenderer
 from meridian_torch.sim.ground_truth import save_ground_truth
 from meridian_torch.sim.odometry import simulate_odometry
 from meridian_torch.sim.ortho_render import render_orthophoto
