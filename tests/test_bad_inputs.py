@@ -144,18 +144,18 @@ def test_a_folder_of_someone_elses_files_is_refused_without_overwrite(world: tup
 
 
 def test_the_demo_replaces_its_own_earlier_output(tmp_path: Path) -> None:
-    from meridian_torch.cli import _refuse_foreign_folder
     from meridian_torch.errors import OutputExistsError
+    from meridian_torch.pipeline.prepare import refuse_foreign_folder
 
     out = tmp_path / "demo"
     out.mkdir()
     (out / "run.json").write_text(json.dumps({"command": "demo"}))
-    _refuse_foreign_folder(out, overwrite=False, command="demo")  # an earlier demo: fine
+    refuse_foreign_folder(out, overwrite=False, command="demo")  # an earlier demo: fine
     with pytest.raises(OutputExistsError):
-        _refuse_foreign_folder(out, overwrite=False, command="localize")
+        refuse_foreign_folder(out, overwrite=False, command="localize")
     (out / "run.json").write_text(json.dumps({"command": "localize"}))
     with pytest.raises(OutputExistsError):
-        _refuse_foreign_folder(out, overwrite=False, command="demo")
+        refuse_foreign_folder(out, overwrite=False, command="demo")
 
 
 def test_map_ground_writes_its_folder_whole(world: tuple[Path, Path], tmp_path: Path,

@@ -53,7 +53,8 @@ def test_localize_refuses_a_folder_with_files_and_leaves_it_untouched(tmp_path: 
 
 def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    from meridian_torch import cli
+    from meridian_torch.cli import runs
+    from meridian_torch.pipeline import prepare
 
     out = tmp_path / "results"
     out.mkdir()
@@ -66,8 +67,8 @@ def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: 
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_open_sequence", lambda cfg, sequence: (None, None))  # a sequence that checks out
-    monkeypatch.setattr(cli, "_load_or_build_map", interrupt)
+    monkeypatch.setattr(prepare, "open_sequence", lambda cfg, sequence: (None, None))  # a sequence that checks out
+    monkeypatch.setattr(runs, "_load_or_build_map", interrupt)
     interrupted = CliRunner().invoke(app, args)
     assert interrupted.exit_code == 130 and "interrupted: nothing was written" in interrupted.output
     assert sorted(p.name for p in out.iterdir()) == ["trajectory.tum"]
