@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import torch
 
+from meridian_torch.config.perception import ClassicalSegmenterConfig, PixelFeatureConfig
 from meridian_torch.config.sim import (
     CameraConfig,
     GroundRenderConfig,
@@ -213,8 +214,12 @@ def main() -> None:
     cols = ["BR", "BP", "UE", "obj", "M", "ms", "tree@0.5", "gr ms", "gr M", "same", "diff"]
     print(f"{'variant':40s}" + "".join(f"{c:>9s}" for c in cols))
     for name, kw, tex_w in VARIANTS:
-        seg = ClassicalSegmenter(**kw)
-        describer = ColourTextureDescriber(PixelFeatures(), texture_weight=tex_w)
+        seg = ClassicalSegmenter(**{**ClassicalSegmenterConfig().model_dump(), **kw})
+        features = PixelFeatureConfig()
+        describer = ColourTextureDescriber(
+            PixelFeatures(**features.model_dump(exclude={"colour_weight", "texture_weight"})),
+            colour_weight=features.colour_weight, texture_weight=tex_w,
+        )
         rows, times, counts = [], [], []
         aerial_desc: tuple[list, list] = ([], [])
         for img, cls, inst in patches:

@@ -8,11 +8,8 @@ from pydantic import ValidationError
 
 from meridian_torch.config.perception import DescriptorConfig, GlobalDescriptorConfig, SegmenterConfig
 from meridian_torch.perception.classical.describers import (
-    ColourTextureDescriber,
-    ColourTextureGlobalDescriber,
     masked_mean,
 )
-from meridian_torch.perception.classical.pixel_features import PixelFeatures
 from meridian_torch.perception.classical.segmenter import ClassicalSegmenter
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
@@ -56,7 +53,7 @@ def iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 @pytest.fixture(scope="module")
 def segmenter() -> ClassicalSegmenter:
-    return ClassicalSegmenter()
+    return build_segmenter(SegmenterConfig(backend="classical"))
 
 
 @pytest.mark.parametrize("meters_per_pixel", [0.15, 0.4])
@@ -93,7 +90,7 @@ def test_batch_equals_single_images(segmenter: ClassicalSegmenter) -> None:
     imgs = torch.stack([scene(0.5, seed=s)[0] for s in range(3)])
     imgs[1] = imgs[1].flip(-1)  # a different layout, so segment counts differ across the batch
     seg = segmenter.segment(imgs, 0.5)
-    describer = ColourTextureDescriber(PixelFeatures())
+    describer = build_segment_describer(DescriptorConfig(backend="classical"))
     desc = describer.describe(imgs, seg.masks, seg.valid)
     for i in range(3):
         one = segmenter.segment(imgs[i : i + 1], 0.5)
@@ -128,7 +125,7 @@ def test_descriptors_unit_norm_and_colour_similarity(segmenter: ClassicalSegment
     masks = torch.stack([discs[0], discs[1], discs[2], torch.zeros_like(discs[0])])[None]
     valid = torch.tensor([[True, True, True, True]])
     masks[0, 2] = (x[1] < 0.34) & (x[0] < 0.34) & ~discs.any(0) & (torch.arange(x.shape[-1]) >= x.shape[-1] // 2)
-    describer = ColourTextureDescriber(PixelFeatures())
+    describer = build_segment_describer(DescriptorConfig(backend="classical"))
     d = describer.describe(x[None], masks, valid)[0]
     assert d.shape == (4, describer.dim)
     torch.testing.assert_close(d[:3].norm(dim=1), torch.ones(3))
@@ -163,8 +160,8 @@ def test_device_and_dtype_follow_input(segmenter: ClassicalSegmenter, device: st
     seg = segmenter.segment(img, 0.5)
     assert seg.masks.device == img.device and seg.valid.device == img.device
     assert seg.scores.dtype == dtype and seg.scores.device == img.device
-    d = ColourTextureDescriber(PixelFeatures()).describe(img, seg.masks, seg.valid)
-    g = ColourTextureGlobalDescriber(PixelFeatures()).describe(img)
+    d = build_segment_describer(DescriptorConfig(backend="classical")).describe(img, seg.masks, seg.valid)
+    g = build_global_describer(GlobalDescriptorConfig(backend="classical")).describe(img)
     assert d.dtype == dtype and d.device == img.device
     assert g.dtype == dtype and g.device == img.device
 

@@ -43,7 +43,7 @@ class ColourTextureDescriber:
     Implements `SegmentDescriber`; `dim` = hue_bins + 1 + texture_bins.
     """
 
-    def __init__(self, features: PixelFeatures, *, colour_weight: float = 1.0, texture_weight: float = 0.4) -> None:
+    def __init__(self, features: PixelFeatures, *, colour_weight: float, texture_weight: float) -> None:
         self.features = features
         self.colour_weight = colour_weight
         self.texture_weight = texture_weight
@@ -78,10 +78,10 @@ class ColourTextureGlobalDescriber:
         self,
         features: PixelFeatures,
         *,
-        pyramid_levels: int = 1,
-        gem_p: float = 3.0,
-        colour_weight: float = 1.0,
-        texture_weight: float = 0.4,
+        pyramid_levels: int,
+        gem_p: float,
+        colour_weight: float,
+        texture_weight: float,
     ) -> None:
         self.features = features
         self.pyramid_levels = pyramid_levels

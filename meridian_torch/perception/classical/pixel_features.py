@@ -70,11 +70,11 @@ class PixelFeatures:
     def __init__(
         self,
         *,
-        hue_bins: int = 12,
-        saturation_knee: float = 0.12,
-        texture_bins: int = 4,
-        texture_max: float = 0.6,
-        texture_smoothing_px: float = 1.0,
+        hue_bins: int,
+        saturation_knee: float,
+        texture_bins: int,
+        texture_max: float,
+        texture_smoothing_px: float,
     ) -> None:
         self.hue_bins = hue_bins
         self.saturation_knee = saturation_knee
