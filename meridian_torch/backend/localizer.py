@@ -31,158 +31,26 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 import torch
 
-from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses, se2_from_se3
+from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
+from meridian_torch.backend.frames import FrameBuffer, OnlineUpdate, lift_se2
 from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph, propagate_covariance
+from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.backend.sanity import sanity_problems
+from meridian_torch.backend.submap_matching import StageSeconds, SubmapMatching
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
 from meridian_torch.geometry.trajectory import Trajectory
-from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.match import match_submap
-from meridian_torch.matching.place_recognition import (
-    CoarseSearch,
-    resolved_mode,
-    select_patches,
-    stack_similarity,
-)
-from meridian_torch.types import AerialMap, GroundSubmap, PrimitiveBatch, PrimitiveSet
+from meridian_torch.types import AerialMap, GroundSubmap
 
-__all__ = ["LocalizationResult", "Localizer", "LocalizerEvent", "Matcher", "lift_se2", "localize_offline"]
-
-
-class Matcher(Protocol):
-    def __call__(
-        self,
-        ground: PrimitiveSet,
-        aerial: PrimitiveBatch,
-        *,
-        rotation_prior: torch.Tensor | float | None,
-        config: object,
-        generator: torch.Generator | None,
-    ) -> Hypotheses: ...
-
-
-@dataclass(frozen=True)
-class LocalizerEvent:
-    """What happened when one submap was added (for progress output and the run log)."""
-
-    submap_index: int
-    time: float
-    state: Literal["pre", "post"]  # state after this submap
-    n_patches: int  # patches this submap was matched against
-    n_hypotheses: int  # its candidates (valid hypotheses with enough associations)
-    n_candidates: int  # candidates in the pool
-    n_inliers: int  # inliers of the pool after this submap
-    attempted: bool  # a fix attempt ran
-    fix_committed: bool  # the global fix was committed on this submap
-    seconds: float
-
-
-@dataclass(frozen=True)
-class LocalizationResult:
-    """Final and incremental trajectories at every frame time; NaN where there is no estimate."""
-
-    frame_times: np.ndarray  # (N,)
-    T_world_base: np.ndarray  # (N, 4, 4) final optimized poses (NaN when not localized)
-    covariance: np.ndarray | None  # (N, 3, 3) marginal covariance of world (x, y, yaw), or None
-    T_world_base_incremental: np.ndarray  # (N, 4, 4) online estimate, NaN before the fix
-    localized: bool  # the final inlier set passes the fix gate
-    inliers: LoopClosureCandidates  # the final inlier loop closures
-    fix_submap_index: int | None  # submap on which the online fix was committed
-    fix_time: float | None  # time at which that fix became available
-    submap_hypotheses: dict[int, LoopClosureCandidates]  # candidates of each submap's first matching
-    submap_matching_mode: dict[int, str]  # how: "place_recognition" (before the fix) or "rotation_prior"
-    final_hypotheses: LoopClosureCandidates  # every submap re-matched in the final pass (empty without it)
-    events: list[LocalizerEvent]
-    timings: dict[str, float]  # seconds per stage: matching, consistency, pose_graph
-    rejected_because: str | None = None  # a solution passed the fix gate but failed the sanity gate (why)
-
-    @property
-    def final_trajectory(self) -> Trajectory | None:
-        return Trajectory(self.frame_times, self.T_world_base) if self.localized else None
-
-    @property
-    def incremental_trajectory(self) -> Trajectory | None:
-        """The online estimate from the fix on (None without a fix)."""
-        ok = np.isfinite(self.T_world_base_incremental[:, 0, 0])
-        if not ok.any():
-            return None
-        return Trajectory(self.frame_times[ok], self.T_world_base_incremental[ok])
-
-
-def lift_se2(T_world_base_se2: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) planar world poses + (N, 4, 4) odometry poses -> (N, 4, 4) T_world_base.
-
-    The planar correction T_world_odom = T_world_base_se2 * SE2(T_odom_base)^-1 (x, y, yaw) is
-    applied to the full odometry pose: x, y and yaw come from the SE(2) pose, z, roll and pitch
-    from the odometry.
-    """
-    correction = T_world_base_se2 @ np.linalg.inv(se2_from_se3(T_odom_base).numpy())
-    C = np.tile(np.eye(4), (len(correction), 1, 1))
-    C[:, :2, :2] = correction[:, :2, :2]
-    C[:, :2, 3] = correction[:, :2, 2]
-    return C @ T_odom_base
-
-
-@dataclass
-class _Update:
-    available_time: float
-    T_world_odom: np.ndarray  # (3, 3) anchor: last optimized pose * its odometry pose^-1
-    node: int  # the frame the anchor was optimized at
-    covariance: np.ndarray | None  # (3, 3) marginal covariance of that frame's (x, y, yaw), world axes
-
-
-class _FrameBuffer:
-    """Frame times and odometry poses that grow as frames arrive (capacity doubles, so a long
-    drive appends in amortized constant time); the arrays handed out are views of the filled part."""
-
-    def __init__(self) -> None:
-        self.n = 0
-        self._times = np.empty(0)
-        self._T_odom_base = np.empty((0, 4, 4))
-        self._odom_se2 = np.empty((0, 3, 3))
-
-    def extend(self, times: np.ndarray, T_odom_base: np.ndarray) -> None:
-        need = self.n + len(times)
-        if need > len(self._times):
-            capacity = max(need, 2 * len(self._times), 64)
-            self._times = np.resize(self._times, capacity)
-            self._T_odom_base = np.resize(self._T_odom_base, (capacity, 4, 4))
-            self._odom_se2 = np.resize(self._odom_se2, (capacity, 3, 3))
-        self._times[self.n : need] = times
-        self._T_odom_base[self.n : need] = T_odom_base
-        self._odom_se2[self.n : need] = se2_from_se3(T_odom_base).numpy()
-        self.n = need
-
-    @property
-    def times(self) -> np.ndarray:
-        return self._times[: self.n]
-
-    @property
-    def T_odom_base(self) -> np.ndarray:
-        return self._T_odom_base[: self.n]
-
-    @property
-    def odom_se2(self) -> np.ndarray:
-        return self._odom_se2[: self.n]
-
-
-@dataclass
-class _Timer:
-    seconds: dict[str, float] = field(
-        default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
-    )
-
-    def add(self, name: str, start: float) -> None:
-        self.seconds[name] += time.perf_counter() - start
+__all__ = ["Localizer", "localize_offline"]
 
 
 class Localizer:
@@ -225,7 +93,7 @@ class Localizer:
             raise ValueError("give both odometry and frame_times, or neither (frames then come through add_frames)")
         self.aerial_map = aerial_map
         self.cfg = cfg
-        self._frames = _FrameBuffer()
+        self._frames = FrameBuffer()
         if frame_times is not None:
             frame_times = np.asarray(frame_times, dtype=np.float64)
             if frame_times.ndim != 1 or len(frame_times) == 0:
@@ -235,12 +103,10 @@ class Localizer:
             self.add_frames(frame_times, odometry.interpolate(frame_times))
         self.incremental = incremental
         self.online_covariance = online_covariance
-        self._matcher: Matcher = matcher or match_submap
         seed = cfg.matching.particles.seed if seed is None else seed
-        device = aerial_map.primitives.points_xy.device
-        self._generator = torch.Generator(device=device).manual_seed(seed)
+        self._timer = StageSeconds()
+        self._matching = SubmapMatching(aerial_map, cfg, matcher or match_submap, seed, self._timer)
         self._clipper_generator = torch.Generator().manual_seed(seed)
-        self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
         self._local_origin_xy = tuple(float(v) for v in aerial_map.local_origin_xy)
         self.submaps: list[GroundSubmap] = []
         self._nodes: list[int] = []  # pose-graph node (frame) of every submap
@@ -251,14 +117,12 @@ class Localizer:
             None  # consistency graph of the pool's first n candidates
         )
         self.state: Literal["pre", "post"] = "pre"
-        self._updates: list[_Update] = []
+        self._updates: list[OnlineUpdate] = []
         self.fix_submap_index: int | None = None
         self.fix_time: float | None = None
         self.events: list[LocalizerEvent] = []
-        self._timer = _Timer()
         # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
         self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
-        self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
 
     @property
     def frame_times(self) -> np.ndarray:
@@ -294,63 +158,15 @@ class Localizer:
             k -= 1
         return k
 
-    def _match(
-        self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | None
-    ) -> LoopClosureCandidates:
-        if len(patches) == 0:
-            return LoopClosureCandidates.empty()
-        start = time.perf_counter()
-        with stage("matching"):
-            aerial = self.aerial_map.primitives.select(patches)
-            ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
-            hyps = self._matcher(
-                ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator
-            )
-        self._timer.add("matching", start)
-        return candidates_from_hypotheses(
-            hyps, submap, patches, min_associations=self.cfg.backend.min_associations
-        )
-
-    def _place_recognition_patches(self, submap: GroundSubmap) -> torch.Tensor:
-        pr = self.cfg.matching.place_recognition
-        n_patches = len(self.aerial_map)
-        similarity = None
-        if resolved_mode(pr, n_patches) == "global":
-            frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
-            valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
-            similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
-        coarse_scores = None
-        if resolved_mode(pr, n_patches) == "coarse":
-            if self._coarse is None:
-                with stage("coarse map"):
-                    self._coarse = CoarseSearch(self.aerial_map.primitives, self._patch_bounds, pr.coarse)
-            with stage("coarse search"):
-                centre = torch.as_tensor(submap.T_odom_base[:2, 3])
-                coarse_scores = self._coarse.add_submap(submap.primitives, centre).score[None]
-        idx, ok = select_patches(pr, 1, n_patches, similarity=similarity, coarse_scores=coarse_scores)
-        return idx[0][ok[0]].cpu()
-
-    def _near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:
-        """Patches near each predicted position (S, 2), largest disk overlap first."""
-        pr = self.cfg.matching.place_recognition.model_copy(update={"mode": "near"})
-        idx, ok = select_patches(
-            pr,
-            len(xy),
-            len(self.aerial_map),
-            predicted_xy=torch.as_tensor(xy, dtype=torch.float64),
-            patch_bounds_xy=self._patch_bounds,
-        )
-        return [i[o] for i, o in zip(idx, ok)]
-
     def _rematch(self, T_world_base_nodes: np.ndarray, submaps: list[GroundSubmap]) -> LoopClosureCandidates:
         """Every submap matched near its pose in `T_world_base_nodes` (per node) with the rotation prior."""
         nodes = [self._node_of(s.time) for s in submaps]
         T_world_base = T_world_base_nodes[nodes]
         T_world_odom = T_world_base @ np.linalg.inv(self._odom_se2[nodes])
         priors = np.arctan2(T_world_odom[:, 1, 0], T_world_odom[:, 0, 0])
-        patches = self._near_patches(T_world_base[:, :2, 2])
+        patches = self._matching.near_patches(T_world_base[:, :2, 2])
         return LoopClosureCandidates.concat(
-            [self._match(s, p, float(r)) for s, p, r in zip(submaps, patches, priors)]
+            [self._matching.match(s, p, float(r)) for s, p, r in zip(submaps, patches, priors)]
         )
 
     # ------------------------------------------------------------------ solving
@@ -406,7 +222,7 @@ class Localizer:
         last = len(sol.T_world_base) - 1
         cov = None if sol.covariance is None else sol.covariance[-1]
         self._updates.append(
-            _Update(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]), last, cov)
+            OnlineUpdate(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]), last, cov)
         )
 
     def _commit(self, inliers: torch.Tensor) -> None:
@@ -464,8 +280,8 @@ class Localizer:
         attempted = committed = False
         if self.state == "pre":
             with stage("place recognition"):
-                patches = self._place_recognition_patches(submap)
-            new = self._match(submap, patches, None)
+                patches = self._matching.place_recognition_patches(submap)
+            new = self._matching.match(submap, patches, None)
             self.submap_hypotheses[submap.index] = new
             self.submap_matching_mode[submap.index] = "place_recognition"
             self.pool = LoopClosureCandidates.concat([self.pool, new])
@@ -491,9 +307,9 @@ class Localizer:
         else:
             anchor = self._updates[-1].T_world_odom
             predicted = anchor @ self._odom_se2[self._nodes[-1]]
-            patches = self._near_patches(predicted[None, :2, 2])[0]
+            patches = self._matching.near_patches(predicted[None, :2, 2])[0]
             prior = float(np.arctan2(anchor[1, 0], anchor[0, 0]))
-            new = self._match(submap, patches, prior)
+            new = self._matching.match(submap, patches, prior)
             self.submap_hypotheses[submap.index] = new
             self.submap_matching_mode[submap.index] = "rotation_prior"
             self.pool = LoopClosureCandidates.concat([self.pool, new])

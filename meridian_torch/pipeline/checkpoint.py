@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from meridian_torch.backend.localizer import Matcher
+from meridian_torch.backend.results import Matcher
 from meridian_torch.errors import CheckpointError
 from meridian_torch.io.atomic import write_bytes_atomic, write_text_atomic
 from meridian_torch.matching.hypotheses import Hypotheses

@@ -25,7 +25,8 @@ from typing import Literal
 
 import numpy as np
 
-from meridian_torch.backend.localizer import LocalizationResult, Localizer, LocalizerEvent, Matcher
+from meridian_torch.backend.localizer import Localizer
+from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel

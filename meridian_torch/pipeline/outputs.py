@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
-from meridian_torch.backend.localizer import LocalizationResult
+from meridian_torch.backend.results import LocalizationResult
 from meridian_torch.config import EvaluationConfig
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from meridian_torch.backend.localizer import LocalizationResult, LocalizerEvent, Matcher
+from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.io.sequence import SequenceReader

@@ -1,0 +1,102 @@
+"""Which aerial patches a submap is matched against, and the matching itself, for the localizer:
+place recognition before the fix (exhaustive, coarse search or global descriptors), the patches
+near a predicted position after it, and the matcher's hypotheses turned into loop-closure
+candidates. One seeded generator drives every matching call, in the localizer's order."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses
+from meridian_torch.backend.results import Matcher
+from meridian_torch.config import MeridianConfig
+from meridian_torch.core.timing import stage
+from meridian_torch.matching.place_recognition import (
+    CoarseSearch,
+    resolved_mode,
+    select_patches,
+    stack_similarity,
+)
+from meridian_torch.types import AerialMap, GroundSubmap
+
+__all__ = ["StageSeconds", "SubmapMatching"]
+
+
+@dataclass
+class StageSeconds:
+    """Seconds the localizer spent per stage (its result's `timings`)."""
+
+    seconds: dict[str, float] = field(
+        default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
+    )
+
+    def add(self, name: str, start: float) -> None:
+        self.seconds[name] += time.perf_counter() - start
+
+
+class SubmapMatching:
+    """Patch selection and matching of submaps against one aerial map (map frame, its device)."""
+
+    def __init__(
+        self, aerial_map: AerialMap, cfg: MeridianConfig, matcher: Matcher, seed: int, timer: StageSeconds
+    ) -> None:
+        self.aerial_map = aerial_map
+        self.cfg = cfg
+        self.timer = timer
+        self._matcher = matcher
+        device = aerial_map.primitives.points_xy.device
+        self._generator = torch.Generator(device=device).manual_seed(seed)
+        self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
+        self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
+
+    def match(
+        self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | None
+    ) -> LoopClosureCandidates:
+        if len(patches) == 0:
+            return LoopClosureCandidates.empty()
+        start = time.perf_counter()
+        with stage("matching"):
+            aerial = self.aerial_map.primitives.select(patches)
+            ground = submap.primitives.to(device=aerial.points_xy.device, dtype=aerial.points_xy.dtype)
+            hyps = self._matcher(
+                ground, aerial, rotation_prior=rotation_prior, config=self.cfg.matching, generator=self._generator
+            )
+        self.timer.add("matching", start)
+        return candidates_from_hypotheses(
+            hyps, submap, patches, min_associations=self.cfg.backend.min_associations
+        )
+
+    def place_recognition_patches(self, submap: GroundSubmap) -> torch.Tensor:
+        pr = self.cfg.matching.place_recognition
+        n_patches = len(self.aerial_map)
+        similarity = None
+        if resolved_mode(pr, n_patches) == "global":
+            frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
+            valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
+            similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
+        coarse_scores = None
+        if resolved_mode(pr, n_patches) == "coarse":
+            if self._coarse is None:
+                with stage("coarse map"):
+                    self._coarse = CoarseSearch(self.aerial_map.primitives, self._patch_bounds, pr.coarse)
+            with stage("coarse search"):
+                centre = torch.as_tensor(submap.T_odom_base[:2, 3])
+                coarse_scores = self._coarse.add_submap(submap.primitives, centre).score[None]
+        idx, ok = select_patches(pr, 1, n_patches, similarity=similarity, coarse_scores=coarse_scores)
+        return idx[0][ok[0]].cpu()
+
+    def near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:
+        """Patches near each predicted position (S, 2), largest disk overlap first."""
+        pr = self.cfg.matching.place_recognition.model_copy(update={"mode": "near"})
+        idx, ok = select_patches(
+            pr,
+            len(xy),
+            len(self.aerial_map),
+            predicted_xy=torch.as_tensor(xy, dtype=torch.float64),
+            patch_bounds_xy=self._patch_bounds,
+        )
+        return [i[o] for i, o in zip(idx, ok)]
