@@ -16,8 +16,9 @@ import torch
 
 from meridian_torch.backend.localizer import Localizer, localize_offline
 from meridian_torch.config import MeridianConfig
+from meridian_torch.geometry.planar import yaw_of
 from meridian_torch.geometry.se2 import se2_matrix
-from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse, yaw_of
+from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import AerialMap, GroundSubmap, PatchGrid, PrimitiveSet, stack_primitive_sets

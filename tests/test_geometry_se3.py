@@ -5,6 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from meridian_torch.geometry.planar import yaw_of
 from meridian_torch.geometry.se3 import (
     matrix_to_quat_xyzw,
     pose_from_xyz_yaw,
@@ -14,7 +15,6 @@ from meridian_torch.geometry.se3 import (
     se3_log,
     so3_exp,
     so3_log,
-    yaw_of,
 )
 
 finite = st.floats(-3.0, 3.0, allow_nan=False)

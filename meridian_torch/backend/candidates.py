@@ -10,24 +10,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from meridian_torch.geometry.se2 import se2_matrix
-from meridian_torch.geometry.se3 import yaw_of
+from meridian_torch.geometry.se2 import se2_from_se3
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import GroundSubmap
 
-__all__ = ["LoopClosureCandidates", "candidates_from_hypotheses", "se2_from_se3"]
-
-
-def se2_from_se3(T: np.ndarray) -> Tensor:
-    """(..., 4, 4) poses -> (..., 3, 3) float64 SE(2): x, y and the yaw of the body x axis."""
-    T = np.asarray(T, dtype=np.float64)
-    return se2_matrix(
-        torch.as_tensor(np.asarray(yaw_of(T))), torch.as_tensor(np.ascontiguousarray(T[..., :2, 3]))
-    )
+__all__ = ["LoopClosureCandidates", "candidates_from_hypotheses"]
 
 
 @dataclass(frozen=True)

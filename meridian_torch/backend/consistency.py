@@ -25,7 +25,7 @@ from torch import Tensor
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.config import BackendConfig
-from meridian_torch.geometry.se2 import se2_inverse, wrap_angle
+from meridian_torch.geometry.se2 import se2_inverse, wrap_angle, yaw_of
 from meridian_torch.matching.clipper.sparse import Edges, dense_block, restrict_edges, solve_clipper_sparse
 
 __all__ = [
@@ -52,8 +52,7 @@ class PairErrors:
 
 def _relative(T_rows: Tensor, T_cols: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """x, y, yaw of T_i^-1 T_j, elementwise over broadcastable (..., 3, 3) poses (no 3x3 products)."""
-    yaw_r = torch.atan2(T_rows[..., 1, 0], T_rows[..., 0, 0])
-    yaw_c = torch.atan2(T_cols[..., 1, 0], T_cols[..., 0, 0])
+    yaw_r, yaw_c = yaw_of(T_rows), yaw_of(T_cols)
     dx = T_cols[..., 0, 2] - T_rows[..., 0, 2]
     dy = T_cols[..., 1, 2] - T_rows[..., 1, 2]
     c, s = torch.cos(yaw_r), torch.sin(yaw_r)

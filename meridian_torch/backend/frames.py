@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meridian_torch.backend.candidates import se2_from_se3
+from meridian_torch.geometry.se2 import se2_from_se3
 
 __all__ = ["FrameBuffer", "OnlineUpdate", "lift_se2"]
 

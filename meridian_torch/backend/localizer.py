@@ -46,6 +46,7 @@ from meridian_torch.backend.submap_matching import StageSeconds, SubmapMatching
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
+from meridian_torch.geometry.planar import yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.match import match_submap
 from meridian_torch.types import AerialMap, GroundSubmap
@@ -163,7 +164,7 @@ class Localizer:
         nodes = [self._node_of(s.time) for s in submaps]
         T_world_base = T_world_base_nodes[nodes]
         T_world_odom = T_world_base @ np.linalg.inv(self._odom_se2[nodes])
-        priors = np.arctan2(T_world_odom[:, 1, 0], T_world_odom[:, 0, 0])
+        priors = yaw_of(T_world_odom)
         patches = self._matching.near_patches(T_world_base[:, :2, 2])
         return LoopClosureCandidates.concat(
             [self._matching.match(s, p, float(r)) for s, p, r in zip(submaps, patches, priors)]
@@ -308,7 +309,7 @@ class Localizer:
             anchor = self._updates[-1].T_world_odom
             predicted = anchor @ self._odom_se2[self._nodes[-1]]
             patches = self._matching.near_patches(predicted[None, :2, 2])[0]
-            prior = float(np.arctan2(anchor[1, 0], anchor[0, 0]))
+            prior = float(yaw_of(anchor))
             new = self._matching.match(submap, patches, prior)
             self.submap_hypotheses[submap.index] = new
             self.submap_matching_mode[submap.index] = "rotation_prior"

@@ -16,21 +16,9 @@ from typing import Literal
 import numpy as np
 
 from meridian_torch.config import BackendConfig
+from meridian_torch.geometry.planar import se2_from_xy_yaw, yaw_of
 
 __all__ = ["PoseGraphSolution", "align_odometry", "optimize_pose_graph", "propagate_covariance"]
-
-
-def _se2(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    T = np.zeros(np.shape(yaw) + (3, 3))
-    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2] = c, -s, x
-    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2] = s, c, y
-    T[..., 2, 2] = 1.0
-    return T
-
-
-def _yaw(T: np.ndarray) -> np.ndarray:
-    return np.arctan2(T[..., 1, 0], T[..., 0, 0])
 
 
 def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
@@ -40,11 +28,11 @@ def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndar
     yaw (mean of p_world - R p_odom). The reference averages each measurement's T_world_odom
     instead, which equals this when the yaws agree.
     """
-    dyaw = _yaw(T_world_base) - _yaw(T_odom_base)
+    dyaw = yaw_of(T_world_base) - yaw_of(T_odom_base)
     yaw = math.atan2(np.sin(dyaw).mean(), np.cos(dyaw).mean())
-    R = _se2(0.0, 0.0, np.array(yaw))[:2, :2]
+    R = se2_from_xy_yaw(0.0, 0.0, np.array(yaw))[:2, :2]
     t = (T_world_base[:, :2, 2] - T_odom_base[:, :2, 2] @ R.T).mean(axis=0)
-    return _se2(t[0], t[1], np.array(yaw))
+    return se2_from_xy_yaw(t[0], t[1], np.array(yaw))
 
 
 @dataclass(frozen=True)
@@ -82,7 +70,7 @@ def optimize_pose_graph(
         raise ValueError(f"prior nodes must lie in [0, {n}), got {prior_nodes.min()}..{prior_nodes.max()}")
 
     def pose(T: np.ndarray) -> gtsam.Pose2:
-        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(_yaw(T)))
+        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(yaw_of(T)))
 
     graph = gtsam.NonlinearFactorGraph()
     odom_noise = gtsam.noiseModel.Diagonal.Sigmas(
@@ -109,11 +97,11 @@ def optimize_pose_graph(
         marginals = gtsam.Marginals(graph, result)
         nodes = np.arange(n - 1, n) if covariance == "last" else np.arange(n)
         local = np.stack([marginals.marginalCovariance(int(k)) for k in nodes])
-        rot = _se2(0.0, 0.0, xyt[nodes, 2])  # body tangent (x, y, theta) -> world-aligned axes
+        rot = se2_from_xy_yaw(0.0, 0.0, xyt[nodes, 2])  # body tangent (x, y, theta) -> world-aligned axes
         rot[:, 2, 2] = 1.0
         cov = rot @ local @ np.swapaxes(rot, 1, 2)
     return PoseGraphSolution(
-        T_world_base=_se2(xyt[:, 0], xyt[:, 1], xyt[:, 2]),
+        T_world_base=se2_from_xy_yaw(xyt[:, 0], xyt[:, 1], xyt[:, 2]),
         covariance=cov,
         initial_error=float(graph.error(initial)),
         final_error=float(graph.error(result)),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from meridian_torch.config import BackendConfig
-from meridian_torch.geometry.se3 import yaw_of  # reads only the rotation's first column: SE(2) or SE(3)
+from meridian_torch.geometry.planar import wrap_angle, yaw_of
 
 __all__ = ["heading_bend_deg", "inlier_disagreement", "off_map_fraction", "sanity_problems"]
 
@@ -32,7 +32,7 @@ def inlier_disagreement(T_solution: np.ndarray, T_measured: np.ndarray, max_m: f
     if len(T_measured) == 0:
         return 0.0
     dt = np.linalg.norm(T_solution[:, :2, 2] - T_measured[:, :2, 2], axis=1)
-    dyaw = np.degrees(np.abs(np.remainder(yaw_of(T_solution) - yaw_of(T_measured) + np.pi, 2 * np.pi) - np.pi))
+    dyaw = np.degrees(np.abs(wrap_angle(yaw_of(T_solution) - yaw_of(T_measured))))
     return float(((dt > max_m) | (dyaw > max_deg)).mean())
 
 

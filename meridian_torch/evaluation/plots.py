@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from meridian_torch.core.kmeans import cosine_kmeans
+from meridian_torch.geometry.planar import se2_from_se3
 from meridian_torch.io.atomic import save_figure_atomic
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.types import AerialMap
@@ -63,13 +64,6 @@ def plot_aerial_map(aerial_map: AerialMap, ortho: Orthophoto | None, out_png: Pa
     return save_figure_atomic(fig, out_png)
 
 
-def _se2_of(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(2x2 rotation, translation) of the x-y part of a 4x4 pose (yaw only)."""
-    yaw = np.arctan2(T[1, 0], T[0, 0])
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s], [s, c]]), np.asarray(T[:2, 3], dtype=np.float64)
-
-
 def plot_ground_submap(
     submap,
     out_png: Path,
@@ -108,7 +102,8 @@ def plot_ground_submap(
     ax.set_title(f"submap {submap.index}: t = {submap.time:.1f} s, path {submap.path_length_m:.0f} m, "
                  f"{len(points)} points, {len(lines)} lines")
     if overlay:
-        R, t = _se2_of(T_world_odom)
+        S = se2_from_se3(T_world_odom)
+        R, t = S[:2, :2], S[:2, 2]
         ax2 = axes[0, 1]
         w_pts = points @ R.T + t
         w_lines = lines @ R.T + t

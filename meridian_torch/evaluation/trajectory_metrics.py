@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from meridian_torch.config import EvaluationConfig
+from meridian_torch.geometry.planar import scalar_yaw_of, wrap_angle
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.io.results import METRICS_JSON, RunOutputs, read_outputs
@@ -51,10 +51,6 @@ def associate(
     )
     ok = np.abs(gt_times[j] - est_times) <= max_difference_s
     return np.flatnonzero(ok), j[ok]
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)
@@ -95,7 +91,7 @@ def trajectory_errors(est: Trajectory, gt: Trajectory, max_difference_s: float =
     return TrajectoryErrors(
         times=est.timestamps[i],
         translation_m=np.linalg.norm(dxy, axis=1),
-        heading_rad=np.abs(_wrap(est.yaws[i] - gt.yaws[j])),
+        heading_rad=np.abs(wrap_angle(est.yaws[i] - gt.yaws[j])),
         distance_m=gt.path_lengths()[j],
     )
 
@@ -134,7 +130,7 @@ def registration_success(
         order = np.argsort(-np.asarray(score), kind="stable")
         hyp = np.asarray(hyp)[order]
         ok = (np.linalg.norm(hyp[:, :2] - T_gt[:2, 3], axis=1) < translation_m) & (
-            np.degrees(np.abs(_wrap(hyp[:, 2] - math.atan2(T_gt[1, 0], T_gt[0, 0])))) < rotation_deg
+            np.degrees(np.abs(wrap_angle(hyp[:, 2] - scalar_yaw_of(T_gt)))) < rotation_deg
         )
         for k in top_k:
             hits[k] += bool(ok[:k].any())

@@ -1,1 +1,3 @@
-"""Geometry shared by all stages: SE(3) and trajectories (numpy float64), SE(2) (batched torch)."""
+"""Geometry shared by all stages: SE(3), trajectories and planar poses / angles (numpy float64,
+`se3`, `trajectory`, `planar`), SE(2) and line angles (batched torch, `se2`), points against
+segments (`segments`)."""

@@ -17,7 +17,6 @@ __all__ = [
     "se3_log",
     "se3_inverse",
     "pose_from_xyz_yaw",
-    "yaw_of",
     "interpolate_poses",
 ]
 
@@ -164,12 +163,6 @@ def pose_from_xyz_yaw(xyz: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     T[..., :3, 3] = xyz
     T[..., 3, 3] = 1.0
     return T
-
-
-def yaw_of(T: np.ndarray) -> np.ndarray:
-    """Heading of the body x axis projected on the x-y plane, (..., 4, 4) -> (...,)."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.arctan2(T[..., 1, 0], T[..., 0, 0])
 
 
 def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:

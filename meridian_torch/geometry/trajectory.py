@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meridian_torch.geometry.se3 import interpolate_poses, yaw_of
+from meridian_torch.geometry.planar import yaw_of
+from meridian_torch.geometry.se3 import interpolate_poses
 
 __all__ = ["Trajectory"]
 

@@ -25,17 +25,11 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import VerificationConfig
+from meridian_torch.geometry.segments import squared_segment_distance
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = ["alignment_score", "line_pieces", "reweight_hypotheses", "segments_near_points"]
-
-
-def _squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """Squared distance from points p (K, 2) to segments a-b (K, 2)."""
-    ab = b - a
-    t = ((p - a) * ab).sum(-1) / ab.square().sum(-1).clamp_min(1e-12)
-    return (a + t.clamp(0.0, 1.0)[:, None] * ab - p).square().sum(-1)
 
 
 def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
@@ -129,7 +123,7 @@ def alignment_score(
         parallel = (u_piece * u_line).sum(-1).abs() >= math.cos(math.radians(config.line_angle_deg))
         piece, line = piece[parallel], line[parallel]
         ends = A.reshape(-1, 4).index_select(0, line)
-        d2 = _squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
+        d2 = squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
         closeness = (1.0 - d2 / config.line_distance_m**2).clamp_min(0.0)
         on_line = closeness.new_zeros(mid.shape[:3].numel()).scatter_reduce(0, piece, closeness, "amax").view(mid.shape[:3])
         score = score + (on_line * length).sum(-1)

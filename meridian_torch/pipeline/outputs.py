@@ -9,11 +9,10 @@ import io
 import json
 from pathlib import Path
 
-import numpy as np
-
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.results import LocalizationResult
 from meridian_torch.config import EvaluationConfig
+from meridian_torch.geometry.planar import yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.io.ortho import Orthophoto
@@ -71,7 +70,7 @@ def _num(v: float) -> str:
 
 def _candidate_rows(c: LoopClosureCandidates) -> list[list[object]]:
     T = c.T_world_base.numpy()
-    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    yaw = yaw_of(T)
     return [
         [
             int(c.submap_index[k]),

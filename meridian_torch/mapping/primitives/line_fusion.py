@@ -7,6 +7,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.geometry.segments import closest_point_on_segment
 
 __all__ = ["fuse_lines", "fuse_indexed_lines", "mergeable_line_pairs"]
 
@@ -59,13 +60,6 @@ def _candidate_pairs(endpoints: np.ndarray, max_dist: float, query: np.ndarray |
     return np.stack([key // n, key % n], axis=1)
 
 
-def _closest_on_segment(p: np.ndarray, a0: np.ndarray, a1: np.ndarray) -> np.ndarray:
-    """Closest point to p (E, 2) on segments a0-a1 (E, 2)."""
-    d = a1 - a0
-    t = np.clip(((p - a0) * d).sum(-1) / (d * d).sum(-1), 0.0, 1.0)
-    return a0 + t[:, None] * d
-
-
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -104,10 +98,10 @@ def _distance_test(
     # Closest points between the segments: candidates are each endpoint against the other segment.
     q = np.stack(
         [
-            _closest_on_segment(a0, b0, b1),
-            _closest_on_segment(a1, b0, b1),
-            _closest_on_segment(b0, a0, a1),
-            _closest_on_segment(b1, a0, a1),
+            closest_point_on_segment(a0, b0, b1),
+            closest_point_on_segment(a1, b0, b1),
+            closest_point_on_segment(b0, a0, a1),
+            closest_point_on_segment(b1, a0, a1),
         ]
     )  # (4, E, 2)
     p = np.stack([a0, a1, b0, b1])

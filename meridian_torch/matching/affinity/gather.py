@@ -10,9 +10,9 @@ from dataclasses import dataclass
 import torch
 
 from meridian_torch.config.matching import AffinityConfig
+from meridian_torch.geometry.se2 import line_angle_between, wrap_line_angle
 from meridian_torch.matching.affinity.lines import _line_params
 from meridian_torch.matching.affinity.scores import (
-    _angle_between,
     _line_pair_table,
     _point_line_table,
     kernel,
@@ -189,9 +189,9 @@ def _gather(
         # Absolute line direction must agree up to the remaining heading uncertainty.
         widen = math.radians(cfg.rotation_uncertainty_deg)
         a_phi = a_lines.angle()[batch, a_ln]
-        g_phi = torch.remainder(g_lines.angle()[g_ln] + yaw, math.pi)
+        g_phi = wrap_line_angle(g_lines.angle()[g_ln] + yaw)
         heading = kernel(
-            _angle_between(a_phi, g_phi),
+            line_angle_between(a_phi, g_phi),
             math.radians(cfg.sigma_theta_deg) + widen,
             math.radians(cfg.epsilon_theta_deg) + widen,
         )

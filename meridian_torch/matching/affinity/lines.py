@@ -12,6 +12,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from meridian_torch.geometry.se2 import wrap_line_angle
 from meridian_torch.types import LineKind
 
 __all__ = ["nearest_point_on_line", "closest_points_between_lines"]
@@ -48,7 +49,7 @@ class _Lines:
 
     def angle(self) -> torch.Tensor:
         """Sign-less direction angle in [0, pi)."""
-        return torch.remainder(torch.atan2(self.dy, self.dx), math.pi)
+        return wrap_line_angle(torch.atan2(self.dy, self.dx))
 
 
 def _line_params(endpoints: torch.Tensor, kinds: torch.Tensor) -> _Lines:

@@ -16,6 +16,7 @@ import math
 import torch
 
 from meridian_torch.config.matching import AffinityConfig
+from meridian_torch.geometry.se2 import line_angle_between
 from meridian_torch.matching.affinity.lines import _clamp, _closest_params, _Lines
 
 __all__ = ["kernel"]
@@ -69,12 +70,6 @@ def _point_pair_score(
     return score
 
 
-def _angle_between(phi_1: torch.Tensor, phi_2: torch.Tensor) -> torch.Tensor:
-    """Sign-less angle between two lines given their angles in [0, pi): in [0, pi/2]."""
-    diff = (phi_1 - phi_2).abs()
-    return torch.minimum(diff, math.pi - diff)
-
-
 def _line_pair_table(l_i: _Lines, l_j: _Lines, with_vectors: bool, parallel_below: float | None) -> torch.Tensor:
     """(F, ...) for every pair of lines: [angle, gap length, lever (, gap x, gap y)].
 
@@ -88,7 +83,7 @@ def _line_pair_table(l_i: _Lines, l_j: _Lines, with_vectors: bool, parallel_belo
     s_i, s_j, meet = _closest_params(l_i, l_j)
     gx = (l_i.ox + s_i * l_i.dx - l_j.ox - s_j * l_j.dx).masked_fill(meet, 0.0)
     gy = (l_i.oy + s_i * l_i.dy - l_j.oy - s_j * l_j.dy).masked_fill(meet, 0.0)
-    angle = _angle_between(l_i.angle(), l_j.angle())
+    angle = line_angle_between(l_i.angle(), l_j.angle())
     lever = (l_i.tref - s_i).abs() + (l_j.tref - s_j).abs()
     if parallel_below is not None:
         wx = l_j.ox + l_j.tref * l_j.dx - l_i.ox - l_i.tref * l_i.dx

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from meridian_torch.config.matching import CoarseSearchConfig
+from meridian_torch.geometry.se2 import rotation_matrix, wrap_line_angle
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = [
@@ -118,7 +119,7 @@ def _channels(cls: torch.Tensor, angle: torch.Tensor, cfg: CoarseSearchConfig) -
     if bins == 0:
         return cls.expand(angle.shape)
     per_class = 1 + bins
-    line_bin = 1 + ((torch.nan_to_num(angle) % math.pi) / math.pi * bins).long().clamp_max(bins - 1)
+    line_bin = 1 + (wrap_line_angle(torch.nan_to_num(angle)) / math.pi * bins).long().clamp_max(bins - 1)
     return cls * per_class + torch.where(torch.isnan(angle), 0, line_bin)
 
 
@@ -247,8 +248,7 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     )
     xy = xy - centre_odom_xy.float()
     yaws = _yaws(cfg)
-    c, s = torch.cos(yaws), torch.sin(yaws)
-    rotation = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)  # (K, 2, 2)
+    rotation = rotation_matrix(yaws)  # (K, 2, 2)
     rotated = torch.einsum("kij,nj->kni", rotation, xy)
     half = (r + 0.5) * cfg.cell_m
     disk = _disk(cfg)
