@@ -26,6 +26,7 @@ import torch
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import Edges, _affinity, _outer, sparse_affinity
 from meridian_torch.config import BackendConfig
+from meridian_torch.geometry.planar import scalar_yaw_of
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.runtime import peak_rss_mib
 
@@ -43,7 +44,7 @@ def synthetic_pool(n_submaps: int, per_submap: int, area_m: float, seed: int) ->
         true = T_world_odom @ T_odom_base
         world_yaw = torch.from_numpy(rng.uniform(-math.pi, math.pi, per_submap))
         world_xy = torch.from_numpy(rng.uniform(0.0, area_m, (per_submap, 2)))
-        world_yaw[0] = math.atan2(float(true[1, 0]), float(true[0, 0]))
+        world_yaw[0] = scalar_yaw_of(true)
         world_xy[0] = true[:2, 2] + torch.from_numpy(rng.normal(0.0, 0.5, 2))
         n = per_submap
         parts.append(LoopClosureCandidates(

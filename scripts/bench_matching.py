@@ -140,6 +140,7 @@ def real_scenes(args: argparse.Namespace) -> list:
         sys.path.insert(0, HERE)
     from exp_registration import containing_patch, true_T_world_odom
 
+    from meridian_torch.geometry.planar import scalar_yaw_of
     from meridian_torch.geometry.se3 import interpolate_poses
     from meridian_torch.io.map_file import load_aerial_map
     from meridian_torch.io.sequence import SequenceReader
@@ -164,7 +165,7 @@ def real_scenes(args: argparse.Namespace) -> list:
                 torch.arange(int(lv.sum())),
             ))
         true_idx = nearest.tolist().index(true_patch) if true_patch in nearest.tolist() else 0
-        truth = (math.atan2(T_true[1, 0], T_true[0, 0]), float(T_true[0, 2]), float(T_true[1, 2]))
+        truth = (scalar_yaw_of(T_true), float(T_true[0, 2]), float(T_true[1, 2]))
         scenes.append((submap.primitives, patches, true_idx, truth))
     return scenes
 

@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from exp_registration import containing_patch, true_T_world_odom  # noqa: E402
 
 from meridian_torch.config import load_config  # noqa: E402
-from meridian_torch.geometry.trajectory import interpolate_poses  # noqa: E402
+from meridian_torch.geometry.planar import scalar_yaw_of, wrap_angle  # noqa: E402
+from meridian_torch.geometry.se3 import interpolate_poses  # noqa: E402
 from meridian_torch.io.map_file import load_aerial_map  # noqa: E402
 from meridian_torch.io.sequence import SequenceReader  # noqa: E402
 from meridian_torch.matching.place_recognition import (  # noqa: E402
@@ -123,7 +124,7 @@ def main() -> None:
         T_wb[:2, 3] -= origin
         T_true = true_T_world_odom(T_wb, sm.T_odom_base)
         patch = containing_patch(amap.patches.centres_xy, amap.patches.bounds_xy, T_wb[:2, 3])
-        truth.append((patch, math.atan2(T_true[1, 0], T_true[0, 0])))
+        truth.append((patch, scalar_yaw_of(T_true)))
     for n_decoys in args.decoys:
         batch, bounds = with_decoys(amap.primitives, np.asarray(amap.patches.bounds_xy), n_decoys)
         t0 = time.perf_counter()
@@ -147,7 +148,7 @@ def main() -> None:
                 better = (pr.score > pr.score[true_patch]).sum()
                 ranks[name].append(int(better) + 1)
             err = float(priors["chain"].yaw[true_patch]) - true_yaw
-            yaw_err.append(abs(math.degrees((err + math.pi) % (2 * math.pi) - math.pi)))
+            yaw_err.append(abs(math.degrees(wrap_angle(err))))
         row = {
             "patches": cmap.n_patches, "raster": list(cmap.shape), "build_s": round(build_s, 2),
             "s_per_submap": round(float(np.median(seconds)), 3), "submaps": len(ranks["chain"]),

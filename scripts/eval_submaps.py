@@ -39,16 +39,12 @@ from meridian_torch.evaluation.primitive_metrics import (
     sample_segments,
     world_ground_truth,
 )
+from meridian_torch.geometry.planar import scalar_yaw_of, se2_from_xy_yaw
 from meridian_torch.geometry.se3 import se3_inverse
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.ground_map import GroundMapper
 from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.ground_truth import load_ground_truth
-
-
-def _se2(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    yaw = math.atan2(T[1, 0], T[0, 0])
-    return np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]), T[:2, 3]
 
 
 def _gt_segments(polylines: list[np.ndarray]) -> np.ndarray:
@@ -77,7 +73,9 @@ def score(seq: Path, submaps: list, geometries: list, dist_artifact: float) -> d
     rows = []
     for sm, geo in zip(submaps, geometries):
         T_world_base = reader.groundtruth.interpolate(np.array([sm.time]))[0]
-        R, t = _se2(T_world_base @ se3_inverse(sm.T_odom_base))
+        T_world_odom = T_world_base @ se3_inverse(sm.T_odom_base)
+        S = se2_from_xy_yaw(T_world_odom[0, 3], T_world_odom[1, 3], scalar_yaw_of(T_world_odom))
+        R, t = S[:2, :2], S[:2, 2]
         pts = sm.primitives.points_xy.double().numpy() @ R.T + t
         lines = sm.primitives.line_endpoints.double().numpy() @ R.T + t
         seen = geo.points_xy @ R.T + t

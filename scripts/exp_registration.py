@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from meridian_torch.geometry.planar import scalar_yaw_of, se2_from_se3, wrap_angle, yaw_of
+
 THRESHOLDS = ((5.0, 5.0), (5.0, 10.0))  # (metres, degrees)
 TOP_L = (1, 5, 10, 25)
 VARIANTS = (("Meridian", True), ("Meridian w/o Lines", False))
@@ -50,29 +52,16 @@ PAPER_KITTI00 = {
 # --------------------------------------------------------------------------------------------
 
 
-def se2_of(T: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) SE(3) -> (..., 3, 3) SE(2): x, y and the yaw of the rotation's x axis."""
-    yaw = np.arctan2(T[..., 1, 0], T[..., 0, 0])
-    out = np.zeros(T.shape[:-2] + (3, 3))
-    out[..., 0, 0], out[..., 0, 1] = np.cos(yaw), -np.sin(yaw)
-    out[..., 1, 0], out[..., 1, 1] = np.sin(yaw), np.cos(yaw)
-    out[..., :2, 2] = T[..., :2, 3]
-    out[..., 2, 2] = 1.0
-    return out
-
-
 def true_T_world_odom(T_world_base_gt: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
     """(3, 3) SE(2) truth of the matcher's output: T_world_base_gt * inverse(T_odom_base)."""
-    world_base, odom_base = se2_of(T_world_base_gt), se2_of(T_odom_base)
+    world_base, odom_base = se2_from_se3(T_world_base_gt), se2_from_se3(T_odom_base)
     return world_base @ np.linalg.inv(odom_base)
 
 
 def pose_errors(T_hyp: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Translation (m) and absolute yaw (deg) errors of hypotheses (..., 3, 3) against a truth (3, 3)."""
     dt = np.linalg.norm(T_hyp[..., :2, 2] - T_true[:2, 2], axis=-1)
-    yaw_h = np.arctan2(T_hyp[..., 1, 0], T_hyp[..., 0, 0])
-    yaw_t = math.atan2(T_true[1, 0], T_true[0, 0])
-    dyaw = np.abs((yaw_h - yaw_t + np.pi) % (2 * np.pi) - np.pi)
+    dyaw = np.abs(wrap_angle(yaw_of(T_hyp) - scalar_yaw_of(T_true)))
     return dt, np.degrees(dyaw)
 
 
@@ -246,7 +235,7 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
         if index is None:
             continue
         tally.n += 1
-        yaw_true = math.atan2(T_true[1, 0], T_true[0, 0])
+        yaw_true = scalar_yaw_of(T_true)
         for name, lines in VARIANTS:
             ground = submap.primitives if lines else _without_lines(submap.primitives)
             batch = _patch(aerial_map, index, lines)

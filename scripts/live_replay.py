@@ -31,6 +31,7 @@ def main() -> None:
     args = p.parse_args()
 
     from meridian_torch.config import CONFIG_DIR, load_config
+    from meridian_torch.geometry.planar import scalar_yaw_of
     from meridian_torch.io.map_file import load_aerial_map
     from meridian_torch.io.sequence import SequenceReader
     from meridian_torch.pipeline import LiveLocalizer
@@ -54,7 +55,7 @@ def main() -> None:
             where = "not localized yet"
             if estimate.localized:
                 x, y = estimate.T_world_base[:2, 3]
-                yaw = math.degrees(math.atan2(estimate.T_world_base[1, 0], estimate.T_world_base[0, 0]))
+                yaw = math.degrees(scalar_yaw_of(estimate.T_world_base))
                 sigma = "" if estimate.covariance is None else (
                     f" +- {math.sqrt(estimate.covariance[0, 0]):.1f}/{math.sqrt(estimate.covariance[1, 1]):.1f} m, "
                     f"{math.degrees(math.sqrt(estimate.covariance[2, 2])):.1f} deg")
