@@ -86,6 +86,22 @@ def test_submap_lines_lie_on_true_borders(tiny: Path, submaps) -> None:
         assert wrong < 0.6 * precision
 
 
+def test_geometries_are_kept_only_when_asked(tiny: Path, submaps) -> None:
+    """A mapper that keeps every submap's flattened points (map-ground plots) and one that does
+    not (the localizer: constant memory on a long drive) make the same submaps."""
+    reader = SequenceReader(tiny)
+    keeping = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime), keep_geometries=True)
+    kept = keeping.map_sequence(reader)
+    assert len(kept) == len(submaps) == keeping.num_submaps > 0
+    assert len(keeping.geometries) == len(kept)
+    assert GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime)).geometries is None
+    for a, b, geometry in zip(kept, submaps, keeping.geometries):
+        assert a.index == b.index and a.time == b.time
+        assert torch.equal(a.primitives.points_xy, b.primitives.points_xy)
+        assert torch.equal(a.primitives.line_endpoints, b.primitives.line_endpoints)
+        np.testing.assert_array_equal(geometry.segment_ids, a.segment_ids.cpu().numpy())
+
+
 def test_batched_and_frame_by_frame_agree(tiny: Path) -> None:
     reader = SequenceReader(tiny)
     runtime = resolve_runtime(CFG.runtime)

@@ -101,7 +101,7 @@ def map_ground_command(
     refuse_foreign_folder(out, overwrite)
     cfg = config_from_options(config, set_)
     reader, ortho = open_sequence(cfg, sequence)
-    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
+    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime), keep_geometries=plots)
     started = time.perf_counter()
     with interruptible(out), atomic_directory(out, overwrite=True) as tmp:
         with progress_bar("mapping ground", "frame") as update:

@@ -87,6 +87,8 @@ class GroundMapper:
         describer: SegmentDescriber,
         global_describer: GlobalDescriber,
         runtime: Runtime,
+        *,
+        keep_geometries: bool = False,
     ) -> None:
         self.cfg = cfg
         self.primitives = primitives
@@ -98,22 +100,27 @@ class GroundMapper:
         self.tracker = SegmentTracker(cfg.tracking)
         self.trigger = SubmapTrigger(cfg)
         self.frames: list[_FrameRecord] = []
-        self.last_geometry: SubmapGeometry | None = None  # of the last submap (plots, evaluation)
-        self.geometries: list[SubmapGeometry] = []
+        # Every submap's flattened points, for writing and evaluating submaps; a localizer does
+        # not need them and on a long drive they would be most of its memory.
+        self.geometries: list[SubmapGeometry] | None = [] if keep_geometries else None
+        self._n_submaps = 0
         self._last_descriptor_xyz: np.ndarray | None = None
         self._last_submap_time = -np.inf
         self._T_base_camera = np.asarray(camera.T_base_camera, dtype=np.float64)
         self._finished = False
 
     @classmethod
-    def from_config(cls, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime) -> "GroundMapper":
+    def from_config(
+        cls, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime, *, keep_geometries: bool = False
+    ) -> "GroundMapper":
         # perception.ground_engine decides whether models run in torch or onnxruntime
         segmenter, describer, global_describer = build_ground_perception(cfg.perception)
-        return cls(cfg.ground_map, cfg.primitives, camera, segmenter, describer, global_describer, runtime)
+        return cls(cfg.ground_map, cfg.primitives, camera, segmenter, describer, global_describer, runtime,
+                   keep_geometries=keep_geometries)
 
     @property
     def num_submaps(self) -> int:
-        return len(self.geometries)
+        return self._n_submaps
 
     def add_frame(self, frame: Frame) -> list[GroundSubmap]:
         """Process one frame; returns the submaps it completed (usually none or one)."""
@@ -234,11 +241,12 @@ class GroundMapper:
                                             self.tracker.cfg.segment_voxel_m)
         self.trigger.commit(segments, record.time, record.path_length_m)
         self._last_submap_time = mid
-        self.last_geometry = geometry
-        self.geometries.append(geometry)
+        if self.geometries is not None:
+            self.geometries.append(geometry)
+        self._n_submaps += 1
         device, dtype = self.runtime.device, self.runtime.dtype
         return GroundSubmap(
-            index=len(self.geometries) - 1,
+            index=self._n_submaps - 1,
             time=record.time,
             T_odom_base=record.T_odom_base.copy(),
             path_length_m=record.path_length_m,
