@@ -54,7 +54,7 @@ def _gt_segments(polylines: list[np.ndarray]) -> np.ndarray:
 
 def run_mapper(seq: Path, cfg, max_frames: int | None = None) -> tuple[list, list, float, int]:
     reader = SequenceReader(seq)
-    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
+    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime), keep_geometries=True)
     n = len(reader) if max_frames is None else min(max_frames, len(reader))
     batch = cfg.ground_map.batch_size
     started = time.perf_counter()
