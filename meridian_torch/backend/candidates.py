@@ -72,7 +72,7 @@ class LoopClosureCandidates:
 
 
 def candidates_from_hypotheses(
-    hypotheses: Hypotheses, submap: GroundSubmap, patch_index: Tensor, *, min_associations: int = 3
+    hypotheses: Hypotheses, submap: GroundSubmap, patch_index: Tensor, *, min_associations: int
 ) -> LoopClosureCandidates:
     """The valid hypotheses (P, L) of one submap against the patches `patch_index` (P,) as candidates.
 
