@@ -13,6 +13,7 @@ from pydantic import Field
 from meridian_torch.config.base import StrictModel
 
 __all__ = [
+    "ModelWeightsConfig",
     "ClassicalSegmenterConfig",
     "SamSegmenterConfig",
     "FastSamConfig",
@@ -84,8 +85,19 @@ class ClassicalSegmenterConfig(StrictModel):
     )
 
 
-class SamSegmenterConfig(StrictModel):
-    """Segment Anything's automatic mask generator (reference aerial segmenter: ViT-L).
+class ModelWeightsConfig(StrictModel):
+    """Where a model's weights come from: a local file (never downloaded; models/README.md lists
+    them), or (tests and CI only) random weights from a seed."""
+
+    weights_path: str | None = Field(default=None, description="local weights file (the model's class says which kind)")
+    random_weights_seed: int | None = Field(
+        default=None, description="tests/CI only: random weights from this seed when weights_path is null"
+    )
+
+
+class SamSegmenterConfig(ModelWeightsConfig):
+    """Segment Anything's automatic mask generator (reference aerial segmenter: ViT-L), from an
+    official sam_vit_*.pth checkpoint.
 
     Generator defaults are the reference's aerial settings (SAM defaults where it sets none); the
     official crop layers and small-region clean-up are off in the reference and not implemented.
@@ -93,12 +105,6 @@ class SamSegmenterConfig(StrictModel):
 
     architecture: Literal["vit_b", "vit_l", "vit_h", "tiny"] = Field(
         default="vit_l", description="SAM image encoder size (reference: vit_l, sam_vit_l_0b3195.pth); tiny: tests only"
-    )
-    weights_path: str | None = Field(
-        default=None, description="official sam_vit_*.pth checkpoint file; never downloaded, see models/README.md"
-    )
-    random_weights_seed: int | None = Field(
-        default=None, description="tests/CI only: random weights from this seed when weights_path is null"
     )
     downsample_factor: float = Field(
         default=5.0, ge=1, description="images are shrunk by this factor per axis (bilinear) before SAM (reference: 5)"
@@ -120,18 +126,13 @@ class SamSegmenterConfig(StrictModel):
     )
 
 
-class FastSamConfig(StrictModel):
-    """FastSAM (YOLOv8-seg) exported to ONNX by its owner, run with onnxruntime (reference ground segmenter).
+class FastSamConfig(ModelWeightsConfig):
+    """FastSAM (YOLOv8-seg) exported to ONNX by its owner (e.g. models/FastSAM-x.onnx), run with
+    onnxruntime (reference ground segmenter); random weights are a tiny stand-in graph.
 
     Letterboxing, confidence filter, NMS and prototype masks are ours.
     """
 
-    weights_path: str | None = Field(
-        default=None, description="FastSAM .onnx graph (e.g. models/FastSAM-x.onnx); never downloaded, see models/README.md"
-    )
-    random_weights_seed: int | None = Field(
-        default=None, description="tests/CI only: a tiny random stand-in graph from this seed when weights_path is null"
-    )
     imgsz: int = Field(default=1024, ge=32, description="frames are letterboxed to fit this size, px (reference: 1024)")
     conf: float = Field(default=0.2, ge=0, le=1, description="minimum detection confidence (reference: 0.2)")
     iou: float = Field(default=0.9, gt=0, le=1, description="NMS box IoU above which the weaker box goes (reference: 0.9)")
@@ -177,17 +178,12 @@ class PixelFeatureConfig(StrictModel):
     texture_weight: float = Field(default=0.4, ge=0, description="weight of the texture block in the descriptor")
 
 
-class _Dinov2Weights(StrictModel):
-    """Which DINOv2 to load: an official (facebookresearch) or Hugging Face checkpoint file, or
-    (tests and CI only) seeded random weights. Blocks naming the same model share one instance."""
+class _Dinov2Weights(ModelWeightsConfig):
+    """Which DINOv2 to load: an official (facebookresearch) or Hugging Face checkpoint file
+    (.pth/.pt/.safetensors), or seeded random weights. Blocks naming the same model share one
+    instance."""
 
     architecture: Dinov2Architecture = Field(default="vitl14", description="DINOv2 backbone")
-    weights_path: str | None = Field(
-        default=None, description="local checkpoint (.pth/.pt/.safetensors); never downloaded, see models/README.md"
-    )
-    random_weights_seed: int | None = Field(
-        default=None, description="tests/CI only: random weights from this seed when weights_path is null"
-    )
 
 
 class Dinov2DescriptorConfig(_Dinov2Weights):

@@ -11,6 +11,7 @@ from meridian_torch.config.base import StrictModel
 __all__ = [
     "WorldConfig",
     "ClassRasterConfig",
+    "SunConfig",
     "OrthoRenderConfig",
     "CameraConfig",
     "GroundRenderConfig",
@@ -60,10 +61,15 @@ class WorldConfig(StrictModel):
         return self
 
 
-class OrthoRenderConfig(StrictModel):
-    meters_per_pixel: float = Field(default=0.3, gt=0)
+class SunConfig(StrictModel):
+    """Where the sun stands; the orthophoto and the ground frames of one world share it."""
+
     sun_azimuth_deg: float = Field(default=135.0, description="direction the sun shines from, clockwise from north")
     sun_elevation_deg: float = Field(default=45.0, gt=0, le=90)
+
+
+class OrthoRenderConfig(SunConfig):
+    meters_per_pixel: float = Field(default=0.3, gt=0)
     shadows: bool = True
     texture_strength: float = Field(default=1.0, ge=0)
     outdated: bool = Field(default=False, description="seasonal colour change and some objects removed or added")
@@ -79,15 +85,13 @@ class CameraConfig(StrictModel):
     depth_scale: float = Field(default=1000.0, gt=0)
 
 
-class GroundRenderConfig(StrictModel):
+class GroundRenderConfig(SunConfig):
     max_depth_m: float = Field(default=20.0, gt=0, description="sensor range; farther pixels get no depth")
     render_distance_m: float = Field(default=120.0, gt=0, description="farther geometry is sky in RGB")
     depth_noise_a: float = Field(default=0.002, ge=0, description="depth noise std = a * z^2 + b")
     depth_noise_b: float = Field(default=0.005, ge=0)
     rgb_noise_std: float = Field(default=2.0, ge=0, description="pixel noise in 8-bit units")
     batch_size: int = Field(default=8, ge=1)
-    sun_azimuth_deg: float = Field(default=135.0, description="direction the sun shines from, clockwise from north")
-    sun_elevation_deg: float = Field(default=45.0, gt=0, le=90)
     ambient: float = Field(default=0.45, ge=0, le=1, description="unlit fraction of the light")
     haze_strength: float = Field(default=0.35, ge=0, le=1, description="blend towards the horizon colour at render distance")
     samples_per_ray: int = Field(default=640, ge=16, description="height samples per image column, geometric in distance")
