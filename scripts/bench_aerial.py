@@ -63,8 +63,6 @@ class _Proxy:
         return getattr(self._inner, name)
 
 
-
-
 def _patch_count(size_m: float, mpp: float, patch_m: float, overlap: float) -> int:
     n = int(round(size_m / mpp))
     return len(tile_image(n, n, mpp, (0.0, 0.0), patch_m, overlap))

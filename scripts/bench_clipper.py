@@ -42,8 +42,6 @@ def planted_clique_problem(
     return M, truth
 
 
-
-
 def bench_clipper(
     sizes: list[int],
     seed: int,

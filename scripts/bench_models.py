@@ -32,10 +32,6 @@ RESULT_TAG = "BENCH_MODELS_RESULT "
 CASES = ("vits14-224", "vits14-448", "sam-tiny-encoder", "sam-tiny-decoder")
 
 
-
-
-
-
 def _config(case: str):  # noqa: ANN202 - the MeridianConfig import is deferred to keep --help fast
     from meridian_torch.config import CONFIG_DIR, load_config
 

@@ -116,4 +116,3 @@ def map_ground_command(
         f"({seconds:.1f} s, {len(reader) / max(seconds, 1e-9):.1f} frames/s, "
         f"{duration / max(seconds, 1e-9):.2f}x real time)"
     )
-

@@ -43,7 +43,6 @@ def _pyplot():
     return plt
 
 
-
 def plot_trajectory(
     outputs: RunOutputs,
     out_png: Path,

@@ -141,4 +141,3 @@ def georeference_mismatches(aerial_map: AerialMap, ortho: Any) -> list[str]:
     if tuple(aerial_map.image_size) != tuple(ortho.size_px):
         problems.append(f"image size {list(aerial_map.image_size)} vs {list(ortho.size_px)} px")
     return problems
-

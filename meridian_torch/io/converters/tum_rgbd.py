@@ -37,7 +37,6 @@ __all__ = ["TUM_CAMERAS", "TumCamera", "TumRgbdError", "convert_tum_rgbd", "read
 TUM_DEPTH_SCALE = 5000.0  # depth PNG units per metre in the TUM RGB-D benchmark
 
 
-
 class TumRgbdError(MeridianError):
     """A TUM RGB-D input is missing, malformed or inconsistent (the message names the file)."""
 
