@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from meridian_torch.config import GroundObservationConfig
+from meridian_torch.config import CloudCleanupConfig, GroundObservationConfig
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.mapping.ground_observations import (
@@ -207,7 +207,7 @@ def test_backprojected_ground_plane_lies_on_the_plane(x, y, yaw, height):
     T_odom_camera = T_odom_base @ camera.T_base_camera
     masks = torch.zeros(1, camera.height, camera.width, dtype=torch.bool)
     masks[0, camera.height // 2 + 1 :] = True
-    cfg = GroundObservationConfig(pixel_stride=1, dbscan_eps_m=0.6)
+    cfg = GroundObservationConfig(pixel_stride=1, cleanup=CloudCleanupConfig(dbscan_eps_m=0.6))
     obs = frame_observations(masks, torch.ones(1, 4) / 2, depth, T_odom_camera, 0.0, camera, cfg)
     assert len(obs) == 1
     pts = np.concatenate([obs.points, obs.occluded])

@@ -24,6 +24,7 @@ from meridian_torch.config.backend import BackendConfig
 from meridian_torch.config.base import StrictModel
 from meridian_torch.config.mapping import (
     AerialMapConfig,
+    CloudCleanupConfig,
     GroundMapConfig,
     GroundObservationConfig,
     GroundTrackingConfig,
@@ -41,6 +42,7 @@ __all__ = [
     "PerceptionConfig",
     "PrimitiveConfig",
     "AerialMapConfig",
+    "CloudCleanupConfig",
     "GroundObservationConfig",
     "GroundTrackingConfig",
     "GroundMapConfig",

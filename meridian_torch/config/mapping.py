@@ -101,6 +101,19 @@ class AerialMapConfig(StrictModel):
     )
 
 
+class CloudCleanupConfig(StrictModel):
+    """Cleanup of each segment's points: voxel means, statistical outlier removal, then the
+    largest DBSCAN cluster (per frame in 3D, and again in x-y after a submap is flattened)."""
+
+    voxel_m: float = Field(default=0.1, gt=0, description="voxel downsampling, m")
+    outlier_neighbours: int = Field(default=10, ge=1, description="statistical outlier removal: neighbours")
+    outlier_std_ratio: float = Field(
+        default=1.0, gt=0, description="statistical outlier removal: keep mean distance < mean + ratio * std"
+    )
+    dbscan_eps_m: float = Field(default=0.5, gt=0, description="DBSCAN radius, m; the largest cluster is kept")
+    dbscan_min_points: int = Field(default=10, ge=1, description="DBSCAN core-point neighbourhood size")
+
+
 class GroundObservationConfig(StrictModel):
     """Per-frame 3D observations: masks -> point clouds with occluded ("border") points (reference
     `SegmenterParams`; every default is the reference's except `pixel_stride`, `max_depth_m` and
@@ -119,13 +132,9 @@ class GroundObservationConfig(StrictModel):
         description="depth cutoff, m; farther pixels are ignored (paper 10 m, a RealSense-class range). Set it "
         "to your sensor's trustworthy range",
     )
-    voxel_m: float = Field(default=0.1, gt=0, description="voxel downsampling of each observation")
-    outlier_neighbours: int = Field(default=10, ge=1, description="statistical outlier removal: neighbours")
-    outlier_std_ratio: float = Field(
-        default=1.0, gt=0, description="statistical outlier removal: keep mean distance < mean + ratio * std"
+    cleanup: CloudCleanupConfig = Field(
+        default_factory=CloudCleanupConfig, description="cleanup of each mask's 3D points"
     )
-    dbscan_eps_m: float = Field(default=0.5, gt=0, description="DBSCAN radius; the largest cluster is kept")
-    dbscan_min_points: int = Field(default=10, ge=1, description="DBSCAN core-point neighbourhood size")
     min_mask_pixels: int = Field(default=0, ge=0, description="masks with fewer pixels are ignored")
     occlusion_edge_frac: float = Field(
         default=0.02, ge=0, le=0.5, description="image-edge band width, fraction of the larger image side"
@@ -200,11 +209,10 @@ class GroundMapConfig(StrictModel):
     occluded_grid_m: float = Field(
         default=0.25, gt=0, description="occluded points sharing an x-y cell of this size with a real point are cleared"
     )
-    flatten_voxel_m: float = Field(default=0.1, gt=0, description="2D cleanup after flattening: voxel")
-    flatten_outlier_neighbours: int = Field(default=10, ge=1, description="2D cleanup: statistical outlier neighbours")
-    flatten_outlier_std_ratio: float = Field(default=1.0, gt=0, description="2D cleanup: statistical outlier ratio")
-    flatten_dbscan_eps_m: float = Field(default=0.25, gt=0, description="2D cleanup: DBSCAN radius (largest cluster)")
-    flatten_dbscan_min_points: int = Field(default=10, ge=1, description="2D cleanup: DBSCAN core size")
+    flatten_cleanup: CloudCleanupConfig = Field(
+        default_factory=lambda: CloudCleanupConfig(dbscan_eps_m=0.25),
+        description="cleanup of each segment's x-y points after the submap is flattened along odom z",
+    )
     point_min_height_m: float = Field(
         default=0.3, ge=0, description="segments flatter than this (odom z extent) give no point primitive; 0 = reference"
     )
@@ -228,4 +236,4 @@ class GroundMapConfig(StrictModel):
     )
 
 
-__all__ += ["AerialMapConfig", "GroundObservationConfig", "GroundTrackingConfig", "GroundMapConfig"]
+__all__ += ["AerialMapConfig", "CloudCleanupConfig", "GroundObservationConfig", "GroundTrackingConfig", "GroundMapConfig"]

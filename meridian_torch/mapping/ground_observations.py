@@ -309,10 +309,11 @@ def frame_observations(
     values = np.concatenate([pts, z[:, None].astype(np.float64)], axis=1)  # keep depth per point
 
     # 2. voxel grid, statistical outliers, largest DBSCAN cluster
-    values, groups = group_voxel_downsample(values, obs_m.astype(np.int64), cfg.voxel_m)
-    keep = group_outlier_mask(values[:, :3], groups, cfg.outlier_neighbours, cfg.outlier_std_ratio)
+    clean = cfg.cleanup
+    values, groups = group_voxel_downsample(values, obs_m.astype(np.int64), clean.voxel_m)
+    keep = group_outlier_mask(values[:, :3], groups, clean.outlier_neighbours, clean.outlier_std_ratio)
     values, groups = values[keep], groups[keep]
-    keep, _ = group_largest_cluster(values[:, :3], groups, cfg.dbscan_eps_m, cfg.dbscan_min_points)
+    keep, _ = group_largest_cluster(values[:, :3], groups, clean.dbscan_eps_m, clean.dbscan_min_points)
     values, groups = values[keep], groups[keep]
 
     # 3. occluded points: the mask's pixels (all, not strided or cleaned) in the depth-cutoff band
@@ -326,7 +327,7 @@ def frame_observations(
     b_m, b_k = np.nonzero(masks[:, b_row, b_col])
     band_pts = _transform(backproject(b_col[b_k].astype(np.float64), b_row[b_k].astype(np.float64),
                                       depth[b_row[b_k], b_col[b_k]], camera), T)
-    band_pts, band_groups = group_voxel_downsample(band_pts, b_m.astype(np.int64), cfg.voxel_m)
+    band_pts, band_groups = group_voxel_downsample(band_pts, b_m.astype(np.int64), clean.voxel_m)
     occ, occ_groups = band_pts, band_groups
     real, real_groups = values[~deep, :3], groups[~deep]
     if len(occ) and len(real) and cfg.occluded_clearance_m > 0:

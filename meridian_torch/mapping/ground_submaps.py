@@ -172,10 +172,11 @@ def submap_primitives(
     occ, ogrp = np.concatenate(occ_l), np.concatenate(ogrp_l)
 
     # flatten along odom z, then clean every segment in one batch
-    pts, grp = group_voxel_downsample(pts, grp, cfg.flatten_voxel_m, dims=2)
-    keep = group_outlier_mask(pts, grp, cfg.flatten_outlier_neighbours, cfg.flatten_outlier_std_ratio)
+    clean = cfg.flatten_cleanup
+    pts, grp = group_voxel_downsample(pts, grp, clean.voxel_m, dims=2)
+    keep = group_outlier_mask(pts, grp, clean.outlier_neighbours, clean.outlier_std_ratio)
     pts, grp = pts[keep], grp[keep]
-    keep, _ = group_largest_cluster(pts, grp, cfg.flatten_dbscan_eps_m, cfg.flatten_dbscan_min_points)
+    keep, _ = group_largest_cluster(pts, grp, clean.dbscan_eps_m, clean.dbscan_min_points)
     pts, grp = pts[keep], grp[keep]
     used, counts = np.unique(grp, return_counts=True)
     used = used[counts >= 2]
