@@ -68,12 +68,12 @@ def _boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
 
 
 def alpha_shape_outline(
-    points: np.ndarray, alpha: float = 1.0, grid_m: float = 0.25, max_points: int | None = None
+    points: np.ndarray, alpha: float, grid_m: float, max_points: int | None = None
 ) -> np.ndarray | None:
     """Outline of a 2D point set by an alpha shape on a grid, or None.
 
     Points are downsampled to one mean point per `grid_m` cell (the cell doubles while more than
-    `max_points` remain), Delaunay-triangulated, triangles with circumradius < 1/alpha kept, and
+    `max_points` remain; None: no cap), Delaunay-triangulated, triangles with circumradius < 1/alpha kept, and
     the boundary edges of the kept triangles polygonized and unioned. Returns the exterior ring's
     K distinct vertices (K, 2), counter-clockwise, implicitly closed (vertex K-1 connects to
     vertex 0); None if the points are degenerate or the union is not a single polygon.
