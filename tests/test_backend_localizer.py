@@ -257,6 +257,44 @@ def test_online_estimate_is_causal_and_close(run) -> None:
     assert np.allclose(loc2.online_estimate()[cut], inc[cut], equal_nan=True)
 
 
+def _windowed_run(window: int):
+    world = World(seed=1)
+    world.bad_submaps, world.corrupt_submaps = {0, 1, 2, 3}, {6}
+    loc = Localizer(make_map(), _cfg(online_window_submaps=window), world.odometry, world.times,
+                    matcher=world.matcher)
+    oldest_in_pool = []
+    for s in world.submaps():
+        loc.add_submap(s)
+        if loc.state == "post" and len(loc.pool):
+            oldest_in_pool.append((s.index, int(loc.pool.submap_index.min())))
+    return world, loc, oldest_in_pool, loc.finalize()
+
+
+def test_a_window_longer_than_the_drive_changes_nothing(run) -> None:
+    world, _loc, _events, result = run
+    _, loc, _, windowed = _windowed_run(len(world.submap_frames) + 1)
+    assert len(loc.archive) == 0
+    np.testing.assert_array_equal(windowed.T_world_base, result.T_world_base)
+    np.testing.assert_array_equal(windowed.T_world_base_incremental, result.T_world_base_incremental)
+
+
+def test_online_window_bounds_the_pool_and_keeps_the_accepted_closures(run) -> None:
+    """With a short window the online consistency graph only holds recent submaps, while the
+    archived loop closures stay in the pose graph: the fix and the trajectory stay right."""
+    world, _loc, _events, full = run
+    window = 4
+    _, loc, oldest_in_pool, result = _windowed_run(window)
+    assert oldest_in_pool and all(latest - oldest < window for latest, oldest in oldest_in_pool)
+    archived = loc.archive.submap_index.tolist()
+    assert len(archived) == len(set(archived)) > 0  # at most one accepted closure per submap
+    assert not set(archived) & (world.bad_submaps | world.corrupt_submaps)
+    assert result.localized and result.fix_submap_index == full.fix_submap_index
+    err = _xy_error(result.T_world_base, world.gt)
+    assert np.sqrt(np.mean(err**2)) < 1.5
+    online = np.isfinite(result.T_world_base_incremental[:, 0, 0])
+    assert _xy_error(result.T_world_base_incremental[online], Trajectory(world.times[online], world.gt.poses[online])).max() < 3.0
+
+
 def test_gate_fraction_blocks_the_fix() -> None:
     world = World(seed=2, n_frames=200)
     world.bad_submaps = set(range(6))  # 6 of 10 submaps are hopeless: never >= 50 % + 6

@@ -114,6 +114,9 @@ class Localizer:
         self.submap_hypotheses: dict[int, LoopClosureCandidates] = {}
         self.submap_matching_mode: dict[int, str] = {}
         self.pool = LoopClosureCandidates.empty()
+        # accepted loop closures of submaps older than `backend.online_window_submaps`: out of the
+        # online consistency graph, still in the pose graph
+        self.archive = LoopClosureCandidates.empty()
         self._pool_edges: tuple[int, Edges] | None = (
             None  # consistency graph of the pool's first n candidates
         )
@@ -226,14 +229,8 @@ class Localizer:
             OnlineUpdate(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]), last, cov)
         )
 
-    def _commit(self, inliers: torch.Tensor) -> None:
-        """Keep only the inlier of every submap that has one, except for the most recent submaps."""
-        if not self.cfg.backend.commit_accepted_inliers:
-            return
-        latest = self.submaps[-1].index
-        committed = self.pool.submap_index[inliers]
-        committed = committed[committed <= latest - self.cfg.backend.commit_delay_submaps]
-        keep = ~(torch.isin(self.pool.submap_index, committed) & ~inliers)
+    def _keep(self, keep: torch.Tensor) -> None:
+        """Keep the pool's candidates `keep` (N,) bool, and the known edges between them."""
         edges = None
         if self._pool_edges is not None and self._pool_edges[0] == len(self.pool):
             i, j, v = self._pool_edges[1]
@@ -241,6 +238,27 @@ class Localizer:
             new_index = torch.cumsum(keep, 0) - 1
             edges = (new_index[i[both]], new_index[j[both]], v[both])
         self._set_pool(self.pool.select(keep), edges)
+
+    def _commit(self, inliers: torch.Tensor) -> None:
+        """Keep only the inlier of every submap that has one, except for the most recent submaps;
+        then move the inliers of submaps past the online window to the archive."""
+        latest = self.submaps[-1].index
+        if self.cfg.backend.commit_accepted_inliers:
+            committed = self.pool.submap_index[inliers]
+            committed = committed[committed <= latest - self.cfg.backend.commit_delay_submaps]
+            keep = ~(torch.isin(self.pool.submap_index, committed) & ~inliers)
+            self._keep(keep)
+            inliers = inliers[keep]
+        window = self.cfg.backend.online_window_submaps
+        if window is not None:
+            old = self.pool.submap_index <= latest - window
+            if bool(old.any()):
+                self.archive = LoopClosureCandidates.concat([self.archive, self.pool.select(old & inliers)])
+                self._keep(~old)
+
+    def _accepted(self, sel: InlierSelection) -> LoopClosureCandidates:
+        """The archived loop closures and the pool's inliers `sel`."""
+        return LoopClosureCandidates.concat([self.archive, self.pool.select(sel.inliers)])
 
     def _attempt_candidates(self, sel: InlierSelection, n_nodes: int) -> LoopClosureCandidates:
         """Re-match every submap so far near the rough trajectory of the pre-fix inliers `sel`.
@@ -315,9 +333,9 @@ class Localizer:
             self.submap_matching_mode[submap.index] = "rotation_prior"
             self.pool = LoopClosureCandidates.concat([self.pool, new])
             sel = self._pool_inliers()
-            n_inliers = sel.count
+            n_inliers = sel.count + len(self.archive)
             if n_inliers:
-                self._anchor(self.pool.select(sel.inliers), n_nodes, available_time)
+                self._anchor(self._accepted(sel), n_nodes, available_time)
                 self._commit(sel.inliers)
         event = LocalizerEvent(
             submap_index=submap.index,
@@ -379,10 +397,11 @@ class Localizer:
         best: tuple[PoseGraphSolution, LoopClosureCandidates] | None = None
         fresh = LoopClosureCandidates.empty()
         sel = self._pool_inliers()
-        if sel.count:
-            inliers = self.pool.select(sel.inliers)
+        n_accepted = sel.count + len(self.archive)
+        if n_accepted:
+            inliers = self._accepted(sel)
             sol = self._optimize(inliers, n)
-            if self._gate(sel.count, n_sub):
+            if self._gate(n_accepted, n_sub):
                 best = (sol, inliers)
             if b.final_rematch:
                 if progress:

@@ -63,6 +63,13 @@ class BackendConfig(StrictModel):
     commit_delay_submaps: int = Field(
         default=2, ge=0, description="the most recent submaps keep their alternatives (reference delay)"
     )
+    online_window_submaps: int | None = Field(
+        default=None,
+        ge=1,
+        description="after the fix, the online consistency graph holds only the candidates of the last this many "
+        "submaps; older accepted loop closures stay in the pose graph (null: the whole drive, whose cost grows "
+        "with its length)",
+    )
     final_rematch: bool = Field(
         default=True, description="finalize: re-match every submap with the rotation prior near the trajectory (pass 2)"
     )
