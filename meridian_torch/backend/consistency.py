@@ -301,9 +301,9 @@ def select_inliers(
     (`_peel`; exact for the densest clique, and it removes the many candidates without consistent
     partners); without any edge the best-quality candidate (then the most probable) is the single
     inlier. Pools still larger than `cfg.max_clipper_candidates` are split into even chunks, each
-    solved on its own; the pooled chunk inliers are solved once more (reference chunking, fact
-    sheet 5.3). `known_edges` = (n_known, edges of the first n_known candidates of `c`) skips
-    scoring those pairs again (a pool that only grew since).
+    solved on its own; the pooled chunk inliers are solved once more (the reference's chunking).
+    `known_edges` = (n_known, edges of the first n_known candidates of `c`) skips scoring those
+    pairs again (a pool that only grew since).
     """
     n = len(c)
     inliers = torch.zeros(n, dtype=torch.bool)
