@@ -28,7 +28,12 @@ import cv2
 import numpy as np
 import torch
 
-from meridian_torch.config.perception import ClassicalSegmenterConfig, PixelFeatureConfig
+from meridian_torch.config.perception import (
+    ClassicalSegmenterConfig,
+    DescriptorConfig,
+    PixelFeatureConfig,
+    SegmenterConfig,
+)
 from meridian_torch.config.sim import (
     CameraConfig,
     GroundRenderConfig,
@@ -36,9 +41,7 @@ from meridian_torch.config.sim import (
     TrajectoryConfig,
     WorldConfig,
 )
-from meridian_torch.perception.classical.describers import ColourTextureDescriber
-from meridian_torch.perception.classical.pixel_features import PixelFeatures
-from meridian_torch.perception.classical.segmenter import ClassicalSegmenter
+from meridian_torch.perception.factory import build_segment_describer, build_segmenter
 from meridian_torch.sim.camera import camera_model_from_config
 from meridian_torch.sim.classes import OBJECT_CLASSES
 from meridian_torch.sim.ground_render import GroundRenderer
@@ -50,7 +53,7 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 MPP = 0.3
 PATCH = 200
 
-# Segmenter variants: (name, ClassicalSegmenter kwargs, PixelFeatures texture weight).
+# Segmenter variants: (name, classical segmenter settings, descriptor texture weight).
 VARIANTS: list[tuple[str, dict, float]] = [
     ("felz, no merge", dict(merge_threshold=1e-6, merge_levels=1), 0.4),
     ("felz+RAG colour only", dict(texture_weight=0.0, boundary_weight=0.0), 0.4),
@@ -214,12 +217,8 @@ def main() -> None:
     cols = ["BR", "BP", "UE", "obj", "M", "ms", "tree@0.5", "gr ms", "gr M", "same", "diff"]
     print(f"{'variant':40s}" + "".join(f"{c:>9s}" for c in cols))
     for name, kw, tex_w in VARIANTS:
-        seg = ClassicalSegmenter(**{**ClassicalSegmenterConfig().model_dump(), **kw})
-        features = PixelFeatureConfig()
-        describer = ColourTextureDescriber(
-            PixelFeatures(**features.model_dump(exclude={"colour_weight", "texture_weight"})),
-            colour_weight=features.colour_weight, texture_weight=tex_w,
-        )
+        seg = build_segmenter(SegmenterConfig(classical=ClassicalSegmenterConfig(**kw)))
+        describer = build_segment_describer(DescriptorConfig(classical=PixelFeatureConfig(texture_weight=tex_w)))
         rows, times, counts = [], [], []
         aerial_desc: tuple[list, list] = ([], [])
         for img, cls, inst in patches:

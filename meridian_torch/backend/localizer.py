@@ -40,9 +40,9 @@ from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
 from meridian_torch.backend.frames import FrameBuffer, OnlineUpdate, lift_se2
 from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph, propagate_covariance
-from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher
+from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher, StageSeconds
 from meridian_torch.backend.sanity import sanity_problems
-from meridian_torch.backend.submap_matching import StageSeconds, SubmapMatching
+from meridian_torch.backend.submap_matching import SubmapMatching
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError

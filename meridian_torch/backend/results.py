@@ -1,8 +1,10 @@
-"""What the localizer returns: per-submap events, the final result, and the matcher it calls."""
+"""What the localizer returns: per-submap events, the final result with its stage timings, and
+the matcher it calls."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
@@ -13,7 +15,7 @@ from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["LocalizationResult", "LocalizerEvent", "Matcher"]
+__all__ = ["LocalizationResult", "LocalizerEvent", "Matcher", "StageSeconds"]
 
 
 class Matcher(Protocol):
@@ -74,3 +76,15 @@ class LocalizationResult:
         if not ok.any():
             return None
         return Trajectory(self.frame_times[ok], self.T_world_base_incremental[ok])
+
+
+@dataclass
+class StageSeconds:
+    """Seconds the localizer spent per stage (its result's `timings`)."""
+
+    seconds: dict[str, float] = field(
+        default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
+    )
+
+    def add(self, name: str, start: float) -> None:
+        self.seconds[name] += time.perf_counter() - start

@@ -6,13 +6,12 @@ candidates. One seeded generator drives every matching call, in the localizer's 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_from_hypotheses
-from meridian_torch.backend.results import Matcher
+from meridian_torch.backend.results import Matcher, StageSeconds
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.matching.place_recognition import (
@@ -23,19 +22,7 @@ from meridian_torch.matching.place_recognition import (
 )
 from meridian_torch.types import AerialMap, GroundSubmap
 
-__all__ = ["StageSeconds", "SubmapMatching"]
-
-
-@dataclass
-class StageSeconds:
-    """Seconds the localizer spent per stage (its result's `timings`)."""
-
-    seconds: dict[str, float] = field(
-        default_factory=lambda: {"matching": 0.0, "consistency": 0.0, "pose_graph": 0.0}
-    )
-
-    def add(self, name: str, start: float) -> None:
-        self.seconds[name] += time.perf_counter() - start
+__all__ = ["SubmapMatching"]
 
 
 class SubmapMatching:

@@ -235,8 +235,8 @@ def write_run_folder(
     *,
     crs: str | None,
     ortho: Orthophoto | None = None,
-    groundtruth: Trajectory | None = None,
-    evaluation: EvaluationConfig | None = None,
+    groundtruth: Trajectory | None,
+    evaluation: EvaluationConfig,
 ) -> tuple[dict | None, Path]:
     """Everything `localize` leaves in its output folder: the outputs, `metrics.json` when there
     is ground truth (`evaluation` settings), and the report. Returns (metrics or None, report path)."""
@@ -246,8 +246,8 @@ def write_run_folder(
     write_outputs(out_dir, run.result, crs=crs)
     metrics = None
     if groundtruth is not None:
-        metrics = evaluate_run(out_dir, groundtruth, evaluation or EvaluationConfig())
+        metrics = evaluate_run(out_dir, groundtruth, evaluation)
     report = write_report(out_dir, stage_seconds=run.seconds, real_time_factor=run.real_time_factor,
                           peak_memory_mib=run.peak_memory_mib, metrics=metrics, ortho=ortho,
-                          groundtruth=groundtruth, max_difference_s=(evaluation or EvaluationConfig()).max_time_difference_s)
+                          groundtruth=groundtruth, max_difference_s=evaluation.max_time_difference_s)
     return metrics, report
