@@ -183,3 +183,18 @@ def test_concatenated_problems_sample_as_each_alone(max_associations: int | None
         torch.testing.assert_close(together.objective[p, :s], sets.objective[q, :s])
     with pytest.raises(ValueError, match="different association axes"):
         concat_problems([parts[0], sampler_problem(M[:1, :50, :50], valid[:1, :50], pairs[:1, :50], cfg)])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_noise_added_per_patch_equals_the_gathered_slabs(dtype: torch.dtype) -> None:
+    from meridian_torch.matching.particle_noise import add_noise_, noise_slabs, row_words, slab_table
+
+    n_patches, m, n = 7, 13, 17
+    slabs = slab_table(m * n, dtype, torch.device("cpu"))
+    words = row_words(patch_seeds(n_patches, torch.Generator().manual_seed(3)), 5, n)
+    scale = torch.randn(n_patches, 1, n, dtype=dtype)
+    g = torch.randn(n_patches, m, n, dtype=dtype)
+    expected = g.clone().addcmul_(noise_slabs(slabs, words, m), scale)
+    assert torch.equal(add_noise_(g.clone(), slabs, words, scale), expected)
+    # each patch reads its own slab: the words of other patches give other noise
+    assert not torch.equal(add_noise_(g.clone(), slabs, words.roll(1, 0), scale), expected)

@@ -59,8 +59,8 @@ from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.particle_noise import (
     ROW,
+    add_noise_,
     mix,
-    noise_slabs,
     patch_seeds,
     row_words,
     slab_table,
@@ -210,7 +210,7 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
             words = row_words(seeds_act, t, n_particles)
             # A random sign per particle: two patches' slabs that overlap in the table still differ.
             signed_sigma = (sigma * (1.0 - 2.0 * (words & 1).to(dtype)))[:, None, :]
-            g.addcmul_(noise_slabs(slabs, words, m), signed_sigma)
+            add_noise_(g, slabs, words, signed_sigma)
         if cfg.rmsprop:
             if t == 0:
                 h = g.square()
