@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -16,6 +17,7 @@ from meridian_torch.io.atomic import atomic_path, write_text_atomic
 
 if TYPE_CHECKING:
     from rasterio.io import DatasetReader
+    from rasterio.windows import Window
 
 __all__ = [
     "Orthophoto",
@@ -43,6 +45,15 @@ class Orthophoto:
         """(width, height) in pixels."""
         return self.image.shape[1], self.image.shape[0]
 
+    def read_box(self, box: np.ndarray) -> np.ndarray:
+        """(r1 - r0, c1 - c0, 3) uint8 pixels of the pixel box (c0, r0, c1, r1) (a view)."""
+        c0, r0, c1, r1 = (int(v) for v in box)
+        return self.image[r0:r1, c0:c1]
+
+    def content_sha256(self) -> str:
+        """Hex SHA-256 of the pixels (resumed builds check they describe the same image)."""
+        return hashlib.sha256(np.ascontiguousarray(self.image).tobytes()).hexdigest()
+
     def world_to_pixel(self, xy: np.ndarray) -> np.ndarray:
         """(..., 2) world x, y -> (..., 2) continuous (col, row); pixel centres at integers."""
         xy = np.asarray(xy, dtype=np.float64)
@@ -58,8 +69,8 @@ class Orthophoto:
 
 
 ORTHO_NAMES = ("ortho.png", "ortho.jpg", "ortho.tif")  # looked up in this order
-_GEOTIFF_SUFFIXES = (".tif", ".tiff")
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+GEOTIFF_SUFFIXES = (".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _GEOREF_KEYS = ("meters_per_pixel", "origin", "crs")
 _STRETCH_PERCENTILES = (2.0, 98.0)
 
@@ -120,7 +131,7 @@ def _check_crs(crs: object, where: str, problems: list[str]) -> str | None:
     return crs if isinstance(crs, str) else text
 
 
-def _parse_georeference(
+def parse_georeference(
     path: Path, problems: list[str]
 ) -> tuple[float, tuple[float, float], str | None] | None:
     """(meters_per_pixel, origin, crs) from an ortho.json; None (and problems) if invalid."""
@@ -161,7 +172,7 @@ def _parse_georeference(
     return float(mpp), (float(origin[0]), float(origin[1])), crs
 
 
-def _decode_rgb8(path: Path, problems: list[str]) -> np.ndarray | None:
+def decode_rgb8(path: Path, problems: list[str]) -> np.ndarray | None:
     """8-bit PNG/JPEG -> (H, W, 3) uint8 RGB; grey is replicated, alpha dropped."""
     import cv2
 
@@ -187,7 +198,7 @@ def _decode_rgb8(path: Path, problems: list[str]) -> np.ndarray | None:
     return None
 
 
-def _geotiff_georeference(
+def geotiff_georeference(
     ds: DatasetReader, path: Path, problems: list[str]
 ) -> tuple[float, tuple[float, float], str | None] | None:
     n_before = len(problems)
@@ -213,7 +224,7 @@ def _geotiff_georeference(
     return float(t.a), (float(t.c), float(t.f)), crs
 
 
-def _geotiff_bands(ds: DatasetReader, path: Path, problems: list[str]) -> list[int] | None:
+def geotiff_bands(ds: DatasetReader, path: Path, problems: list[str]) -> list[int] | None:
     """1-based band indexes giving R, G, B."""
     from rasterio.enums import ColorInterp
 
@@ -229,18 +240,51 @@ def _geotiff_bands(ds: DatasetReader, path: Path, problems: list[str]) -> list[i
     return None
 
 
-def _to_uint8(band: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    if band.dtype == np.uint8:
-        return band
+def stretch_limits(band: np.ndarray, valid: np.ndarray) -> tuple[float, float] | None:
+    """The band values stretched to 0 and 255 (2nd and 98th percentiles of the valid pixels);
+    None when no pixel is valid."""
     values = band[valid]
     if values.size == 0:
-        return np.zeros(band.shape, dtype=np.uint8)
+        return None
     lo, hi = np.percentile(values, _STRETCH_PERCENTILES)
+    return float(lo), float(hi)
+
+
+def stretch_to_uint8(band: np.ndarray, limits: tuple[float, float] | None) -> np.ndarray:
+    """A non-8-bit band (or any box of it) stretched linearly by `limits` (stretch_limits)."""
+    if limits is None:
+        return np.zeros(band.shape, dtype=np.uint8)
+    lo, hi = limits
     scaled = (band.astype(np.float64) - lo) / max(hi - lo, np.finfo(np.float64).tiny)
     return np.round(np.clip(np.nan_to_num(scaled), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def _open_geotiff(path: Path) -> DatasetReader:
+def read_geotiff_bands(
+    ds: DatasetReader, bands: list[int], window: Window | None = None
+) -> tuple[dict[int, np.ndarray], np.ndarray]:
+    """The distinct `bands` of `window` (None: the whole image) and the mask of its valid pixels
+    (nodata values, alpha band, internal masks, non-finite floats in any band)."""
+    unique = sorted(set(bands))
+    data = dict(zip(unique, ds.read(unique, window=window)))
+    valid = ds.dataset_mask(window=window) != 0
+    for b in unique:
+        if np.issubdtype(data[b].dtype, np.floating):
+            valid &= np.isfinite(data[b])
+    return data, valid
+
+
+def geotiff_rgb(
+    data: dict[int, np.ndarray], valid: np.ndarray, bands: list[int],
+    limits: dict[int, tuple[float, float] | None],
+) -> np.ndarray:
+    """(H, W, 3) uint8 RGB from read_geotiff_bands; non-8-bit bands stretched by their `limits`."""
+    converted = {b: v if v.dtype == np.uint8 else stretch_to_uint8(v, limits[b]) for b, v in data.items()}
+    image = np.stack([converted[b] for b in bands], axis=-1)
+    image[~valid] = 0
+    return np.ascontiguousarray(image)
+
+
+def open_geotiff(path: Path) -> DatasetReader:
     import warnings
 
     import rasterio
@@ -257,23 +301,16 @@ def _open_geotiff(path: Path) -> DatasetReader:
 
 def _read_geotiff(path: Path) -> Orthophoto:
     problems: list[str] = []
-    with _open_geotiff(path) as ds:
-        georef = _geotiff_georeference(ds, path, problems)
-        bands = _geotiff_bands(ds, path, problems)
+    with open_geotiff(path) as ds:
+        georef = geotiff_georeference(ds, path, problems)
+        bands = geotiff_bands(ds, path, problems)
         if problems:
             raise OrthophotoError(problems[0])
         assert georef is not None and bands is not None
-        unique = sorted(set(bands))
-        data = dict(zip(unique, ds.read(unique)))
-        valid = ds.dataset_mask() != 0  # nodata values, alpha band and internal masks
-    for b in unique:
-        if np.issubdtype(data[b].dtype, np.floating):
-            valid &= np.isfinite(data[b])
-    converted = {b: _to_uint8(data[b], valid) for b in unique}
-    image = np.stack([converted[b] for b in bands], axis=-1)
-    image[~valid] = 0
+        data, valid = read_geotiff_bands(ds, bands)
+    limits = {b: stretch_limits(v, valid) for b, v in data.items() if v.dtype != np.uint8}
     mpp, origin, crs = georef
-    return Orthophoto(np.ascontiguousarray(image), mpp, origin, crs)
+    return Orthophoto(geotiff_rgb(data, valid, bands, limits), mpp, origin, crs)
 
 
 def read_orthophoto(path: str | os.PathLike[str]) -> Orthophoto:
@@ -288,13 +325,13 @@ def read_orthophoto(path: str | os.PathLike[str]) -> Orthophoto:
     """
     image_path = find_orthophoto(path)
     suffix = image_path.suffix.lower()
-    if suffix in _GEOTIFF_SUFFIXES:
+    if suffix in GEOTIFF_SUFFIXES:
         return _read_geotiff(image_path)
-    if suffix not in _IMAGE_SUFFIXES:
+    if suffix not in IMAGE_SUFFIXES:
         raise OrthophotoError(f"{image_path}: unsupported orthophoto type (expected PNG, JPEG or GeoTIFF)")
     problems: list[str] = []
-    georef = _parse_georeference(georeference_path(image_path), problems)
-    image = _decode_rgb8(image_path, problems) if not problems else None
+    georef = parse_georeference(georeference_path(image_path), problems)
+    image = decode_rgb8(image_path, problems) if not problems else None
     if problems:
         raise OrthophotoError(problems[0])
     assert georef is not None and image is not None
@@ -313,16 +350,16 @@ def check_orthophoto(path: str | os.PathLike[str]) -> list[str]:
         return [str(e)]
     suffix = image_path.suffix.lower()
     problems: list[str] = []
-    if suffix in _GEOTIFF_SUFFIXES:
+    if suffix in GEOTIFF_SUFFIXES:
         try:
-            with _open_geotiff(image_path) as ds:
-                _geotiff_georeference(ds, image_path, problems)
-                _geotiff_bands(ds, image_path, problems)
+            with open_geotiff(image_path) as ds:
+                geotiff_georeference(ds, image_path, problems)
+                geotiff_bands(ds, image_path, problems)
         except OrthophotoError as e:
             problems.append(str(e))
-    elif suffix in _IMAGE_SUFFIXES:
-        _parse_georeference(georeference_path(image_path), problems)
-        _decode_rgb8(image_path, problems)
+    elif suffix in IMAGE_SUFFIXES:
+        parse_georeference(georeference_path(image_path), problems)
+        decode_rgb8(image_path, problems)
     else:
         problems.append(f"{image_path}: unsupported orthophoto type (expected PNG, JPEG or GeoTIFF)")
     return problems
