@@ -6,6 +6,8 @@ Only pydantic is imported here so that configs stay cheap to load.
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from meridian_torch.config.base import StrictModel
@@ -96,8 +98,15 @@ class AerialMapConfig(StrictModel):
     workers: int = Field(
         default=1,
         ge=1,
-        description="worker processes describing patch batches (CPU only; the same map): classical back ends "
-        "scale with cores, each worker holds its own orthophoto and back ends",
+        description="workers describing patch batches (the same map): local processes (CPU only) or Ray actors; "
+        "classical back ends scale with cores, each worker opens the orthophoto and holds its own back ends",
+    )
+    engine: Literal["local", "ray"] = Field(
+        default="local",
+        description="where batches are described: local processes, or Ray actors (extra 'distributed')",
+    )
+    ray_address: str | None = Field(
+        default=None, description="engine ray: cluster to join (HEAD:6379); None starts a local one with `workers` CPUs"
     )
 
 

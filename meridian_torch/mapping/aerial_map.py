@@ -9,20 +9,22 @@ local origin near the orthophoto (`map_frame_origin`), so that float32 tensors k
 and polygon operations stay robust when the orthophoto is georeferenced in a projected CRS with
 coordinates like (458000, 5429000); `AerialMap.local_origin_xy` (float64) converts back.
 
-Parallel: with `aerial_map.workers` > 1 the patch batches are described in that many worker
-processes (CPU only). Classical segmentation and segment -> primitive conversion are
-single-threaded Python/NumPy, so processes, not torch threads, are what use a second core.
+Windowed: `build_map_file` opens the orthophoto as an `OrthophotoSource` and patches are read box
+by box (io/ortho_source.py), so a tiled GeoTIFF is never held whole in memory.
+
+Engines (mapping/aerial_engines.py): blocks of `aerial_map.batch_size` patches are described in
+this process, in `aerial_map.workers` local processes, or on a Ray cluster; the map is the same.
+Classical segmentation and segment -> primitive conversion are single-threaded Python/NumPy, so
+processes, not torch threads, are what use a second core.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import shutil
 import zipfile
-from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +38,9 @@ from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.config.perception import active_backend_dict
 from meridian_torch.io.atomic import atomic_path, write_text_atomic
 from meridian_torch.io.map_file import save_aerial_map
-from meridian_torch.io.ortho import Orthophoto, find_orthophoto, read_orthophoto
+from meridian_torch.io.ortho import Orthophoto
+from meridian_torch.io.ortho_source import OrthophotoSource, open_orthophoto
+from meridian_torch.mapping.aerial_engines import described_blocks
 from meridian_torch.mapping.primitives.conversion import segments_to_primitives
 from meridian_torch.mapping.tiling import crop_offsets, tile_image
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
@@ -48,12 +52,12 @@ __all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dic
 _LOCAL_ORIGIN_STEP_M = 10_000.0  # round numbers, and 0 for every orthophoto within 5 km of its CRS origin
 
 
-def map_frame_origin(ortho: Orthophoto) -> tuple[float, float]:
+def map_frame_origin(ortho: Orthophoto | OrthophotoSource) -> tuple[float, float]:
     """World x, y of the map frame's origin: the orthophoto's corner rounded to 10 km."""
     return tuple(float(np.round(v / _LOCAL_ORIGIN_STEP_M) * _LOCAL_ORIGIN_STEP_M) for v in ortho.origin_xy)
 
 
-def _corner_in_map_frame(ortho: Orthophoto) -> tuple[float, float]:
+def _corner_in_map_frame(ortho: Orthophoto | OrthophotoSource) -> tuple[float, float]:
     """The orthophoto's top-left corner in the map frame (float64)."""
     local = map_frame_origin(ortho)
     return ortho.origin_xy[0] - local[0], ortho.origin_xy[1] - local[1]
@@ -62,7 +66,7 @@ def _corner_in_map_frame(ortho: Orthophoto) -> tuple[float, float]:
 def map_config_dict(aerial: AerialMapConfig, perception: PerceptionConfig, primitives: PrimitiveConfig) -> dict[str, Any]:
     """The config blocks that shape an aerial map (stored in the map file and compared on load)."""
     return {
-        "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size", "workers"}),
+        "aerial_map": aerial.model_dump(mode="json", exclude={"batch_size", "workers", "engine", "ray_address"}),
         "perception": {
             "aerial_segmenter": active_backend_dict(perception.aerial_segmenter),
             "descriptor": active_backend_dict(perception.descriptor),
@@ -99,11 +103,13 @@ class AerialMapper:
             device=torch.device(device),
         )
 
-    def describe_patches(self, ortho: Orthophoto, grid: PatchGrid, indices: np.ndarray) -> list[tuple[PrimitiveSet, torch.Tensor]]:
-        """Primitives and global descriptor of the patches `indices` (one batch)."""
+    def describe_patches(
+        self, ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, indices: np.ndarray
+    ) -> list[tuple[PrimitiveSet, torch.Tensor]]:
+        """Primitives and global descriptor of the patches `indices` (one block), read box by box."""
         mpp = ortho.meters_per_pixel
         boxes = grid.pixel_boxes[indices]
-        patches = _to_tensor([ortho.image[r0:r1, c0:c1] for c0, r0, c1, r1 in boxes], self.device)
+        patches = _to_tensor([ortho.read_box(box) for box in boxes], self.device)
         global_desc = self.global_describer.describe(patches)
 
         # Segmentation crops: the whole patch (default), or square sub-crops as the reference does.
@@ -156,10 +162,10 @@ def _to_tensor(images: list[np.ndarray], device: torch.device) -> torch.Tensor:
     return batch.permute(0, 3, 1, 2).float().div_(255.0)
 
 
-def _work_key(ortho: Orthophoto, config: dict[str, Any]) -> str:
+def _work_key(ortho: Orthophoto | OrthophotoSource, config: dict[str, Any]) -> str:
     h = hashlib.sha256(json.dumps([__version__, config, ortho.meters_per_pixel, list(ortho.origin_xy)],
                                   sort_keys=True).encode())
-    h.update(np.ascontiguousarray(ortho.image).tobytes())
+    h.update(ortho.content_sha256().encode())
     return h.hexdigest()[:16]
 
 
@@ -179,45 +185,8 @@ def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor] | None:
         return None
 
 
-_worker_state: tuple[Orthophoto, PatchGrid, AerialMapper] | None = None
-
-
-def _init_worker(ortho: Orthophoto, grid: PatchGrid, mapper: AerialMapper) -> None:
-    global _worker_state
-    torch.set_num_threads(1)  # the workers are the parallelism
-    _worker_state = (ortho, grid, mapper)
-
-
-def _describe_in_worker(indices: np.ndarray) -> list[tuple[PrimitiveSet, torch.Tensor]]:
-    assert _worker_state is not None, "worker not initialized"
-    ortho, grid, mapper = _worker_state
-    with torch.inference_mode():
-        return mapper.describe_patches(ortho, grid, indices)
-
-
-def _described_batches(
-    ortho: Orthophoto, grid: PatchGrid, mapper: AerialMapper, batches: list[np.ndarray]
-) -> Iterator[list[tuple[PrimitiveSet, torch.Tensor]]]:
-    """`mapper.describe_patches` of each batch, in order; in `aerial.workers` processes when > 1."""
-    workers = min(mapper.aerial.workers, len(batches))
-    if workers > 1 and mapper.device.type != "cpu":
-        raise ValueError(f"aerial_map.workers = {mapper.aerial.workers} needs the CPU device, got {mapper.device}")
-    if workers <= 1:
-        with torch.inference_mode():
-            for indices in batches:
-                yield mapper.describe_patches(ortho, grid, indices)
-        return
-    # spawn, not fork: a forked child of a process whose OpenMP pool is running can deadlock.
-    context = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(ortho, grid, mapper))
-    try:
-        yield from pool.map(_describe_in_worker, batches)
-    finally:  # interrupted (Ctrl-C, an error while saving): drop the batches not started
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
 def build_aerial_map(
-    ortho: Orthophoto,
+    ortho: Orthophoto | OrthophotoSource,
     mapper: AerialMapper,
     *,
     work_dir: Path | None = None,
@@ -225,7 +194,8 @@ def build_aerial_map(
     progress: Callable[[int, int], None] | None = None,
     on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
-    """Build the aerial map of `ortho`. With `work_dir`, finished patches are kept there and reused
+    """Build the aerial map of `ortho` (in memory, or a source read box by box) on the engine of
+    `mapper.aerial`. With `work_dir`, finished patches are kept there and reused on any engine
     (damaged part files are built again, reported through `on_message`)."""
     grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, _corner_in_map_frame(ortho),
                       mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
@@ -248,9 +218,9 @@ def build_aerial_map(
     todo = np.array([i for i in range(len(grid)) if i not in results], dtype=np.int64)
     if progress is not None:
         progress(len(results), len(grid))
-    batch = mapper.aerial.batch_size
-    batches = [todo[start : start + batch] for start in range(0, len(todo), batch)]
-    for indices, described in zip(batches, _described_batches(ortho, grid, mapper, batches)):
+    block = mapper.aerial.batch_size
+    blocks = [todo[start : start + block] for start in range(0, len(todo), block)]
+    for indices, described in zip(blocks, described_blocks(ortho, grid, mapper, blocks)):
         for i, result in zip(indices, described):
             results[int(i)] = result
             if work_dir is not None:
@@ -288,14 +258,15 @@ def build_map_file(
     progress: Callable[[int, int], None] | None = None,
     on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
-    """Orthophoto file or folder -> aerial map saved at `out`, resumable through `out`.parts/."""
-    ortho = read_orthophoto(ortho_path)
+    """Orthophoto file or folder -> aerial map saved at `out`, resumable through `out`.parts/.
+    The orthophoto is read box by box (io/ortho_source.py)."""
     mapper = AerialMapper.from_config(aerial, perception, primitives, device=device)
     work_dir = out.with_name(out.name + ".parts")
-    aerial_map = build_aerial_map(
-        ortho, mapper, work_dir=work_dir, progress=progress, on_message=on_message,
-        source={"orthophoto": str(find_orthophoto(ortho_path).resolve())},
-    )
+    with open_orthophoto(ortho_path) as ortho:
+        aerial_map = build_aerial_map(
+            ortho, mapper, work_dir=work_dir, progress=progress, on_message=on_message,
+            source={"orthophoto": str(ortho.path.resolve())},
+        )
     save_aerial_map(aerial_map, out)
     shutil.rmtree(work_dir, ignore_errors=True)
     return aerial_map

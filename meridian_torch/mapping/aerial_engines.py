@@ -1,0 +1,136 @@
+"""Where the aerial map's blocks of patches are described: this process, local worker processes, or Ray.
+
+Every engine runs `describe_block` (the mapper's `describe_patches` under inference mode) on the
+same blocks and yields their results in block order, so the map does not depend on the engine
+(`aerial_map.engine`, `aerial_map.workers`). Workers receive the orthophoto as it was given: an
+`OrthophotoSource` travels as its path and each worker opens the file itself; an in-memory
+`Orthophoto` travels with its pixels.
+
+- local, workers = 1: this process.
+- local, workers > 1: a spawn process pool, one mapper per process (CPU only).
+- ray: one actor per worker holding the orthophoto, the grid and the mapper (neural back ends
+  load their weights once per actor; an actor takes a GPU when the mapper's device is CUDA),
+  blocks dispatched to whichever actor is free. Without `aerial_map.ray_address` a local cluster
+  with `workers` CPUs is started (and stopped afterwards); with it, the running cluster is joined.
+  A Ray session already initialised by the caller is used as it is. Ray is imported only here.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from meridian_torch.errors import ConfigError
+from meridian_torch.types import PatchGrid, PrimitiveSet
+
+if TYPE_CHECKING:
+    from meridian_torch.io.ortho import Orthophoto
+    from meridian_torch.io.ortho_source import OrthophotoSource
+    from meridian_torch.mapping.aerial_map import AerialMapper
+
+__all__ = ["BlockResult", "describe_block", "described_blocks"]
+
+BlockResult = list[tuple[PrimitiveSet, torch.Tensor]]  # per patch: primitives, global descriptor
+
+
+def describe_block(
+    ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, indices: np.ndarray
+) -> BlockResult:
+    """The per-block function every engine runs."""
+    with torch.inference_mode():
+        return mapper.describe_patches(ortho, grid, indices)
+
+
+def described_blocks(
+    ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, blocks: list[np.ndarray]
+) -> Iterator[BlockResult]:
+    """`describe_block` of each block, in order, on the engine of `mapper.aerial`."""
+    if mapper.aerial.engine == "ray":
+        yield from _ray_blocks(ortho, grid, mapper, blocks)
+    else:
+        yield from _local_blocks(ortho, grid, mapper, blocks)
+
+
+class _BlockDescriber:
+    """A worker's state: the orthophoto (opened on first read), the grid and the mapper."""
+
+    def __init__(self, ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper) -> None:
+        torch.set_num_threads(1)  # the workers are the parallelism
+        self.state = (ortho, grid, mapper)
+
+    def describe(self, indices: np.ndarray) -> BlockResult:
+        return describe_block(*self.state, indices)
+
+
+_worker: _BlockDescriber | None = None  # a local pool worker's state
+
+
+def _init_worker(ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper) -> None:
+    global _worker
+    _worker = _BlockDescriber(ortho, grid, mapper)
+
+
+def _describe_in_worker(indices: np.ndarray) -> BlockResult:
+    assert _worker is not None, "worker not initialized"
+    return _worker.describe(indices)
+
+
+def _local_blocks(
+    ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, blocks: list[np.ndarray]
+) -> Iterator[BlockResult]:
+    workers = min(mapper.aerial.workers, len(blocks))
+    if workers > 1 and mapper.device.type != "cpu":
+        raise ConfigError(f"aerial_map.workers = {mapper.aerial.workers} needs the CPU device, got {mapper.device}")
+    if workers <= 1:
+        for indices in blocks:
+            yield describe_block(ortho, grid, mapper, indices)
+        return
+    # spawn, not fork: a forked child of a process whose OpenMP pool is running can deadlock.
+    context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(ortho, grid, mapper))
+    try:
+        yield from pool.map(_describe_in_worker, blocks)
+    finally:  # interrupted (Ctrl-C, an error while saving): drop the blocks not started
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ray_blocks(
+    ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, blocks: list[np.ndarray]
+) -> Iterator[BlockResult]:
+    try:
+        import ray
+        from ray.util import ActorPool
+    except ImportError as e:
+        raise ConfigError(
+            "aerial_map.engine = 'ray' needs Ray, which is not installed: pip install -e '.[distributed]'"
+        ) from e
+    import logging
+
+    if not blocks:
+        return
+    aerial = mapper.aerial
+    started = not ray.is_initialized()
+    if started and aerial.ray_address is None:
+        ray.init(num_cpus=aerial.workers, include_dashboard=False, logging_level=logging.WARNING)
+    elif started:
+        try:
+            ray.init(address=aerial.ray_address, logging_level=logging.WARNING)
+        except ConnectionError as e:
+            raise ConfigError(f"aerial_map.ray_address = {aerial.ray_address!r}: cannot connect ({e})") from e
+    actors = []
+    try:
+        gpus = 1 if mapper.device.type == "cuda" else 0
+        actor_class = ray.remote(num_cpus=1, num_gpus=gpus)(_BlockDescriber)
+        state = [ray.put(v) for v in (ortho, grid, mapper)]  # stored once, shared by the actors
+        actors = [actor_class.remote(*state) for _ in range(min(aerial.workers, len(blocks)))]
+        yield from ActorPool(actors).map(lambda actor, indices: actor.describe.remote(indices), blocks)
+    finally:  # finished or interrupted: the actors (and a cluster started here) go
+        for actor in actors:
+            ray.kill(actor)
+        if started:
+            ray.shutdown()
