@@ -1,25 +1,44 @@
 #!/usr/bin/env python
-"""Aerial-map build throughput: km^2 per minute, peak memory and per-stage time of build_aerial_map.
+"""Aerial-map build throughput and memory: km^2 per minute, peak RSS and per-stage time, per engine.
 
 Builds a procedural world of --size-m x --size-m (default 1000 m = 1 km^2; configs/default.yaml
-world settings), renders its orthophoto at --mpp (0.3 m/px) and times `build_aerial_map` with
-torch limited to --threads (2) threads. With a smaller --size-m (e.g. 300) the time per patch is
-extrapolated to 1 km^2 (patch count of the same tiling of a 1000 m image: 33 x 33 = 1089).
+world settings), renders its orthophoto at --mpp (0.3 m/px), writes it as a tiled GeoTIFF under a
+temporary folder and builds its map from the file read box by box (io/ortho_source.py, as
+build-map does), with torch limited to --threads (2) threads in this process. With a smaller
+--size-m (e.g. 300) the time per patch is extrapolated to 1 km^2 (patch count of the same tiling
+of a 1000 m image: 33 x 33 = 1089). --geotiff PATH builds from that file instead (no world);
+--max-patches N builds only a north-west crop of about N patches (read from the same file), e.g.
+to measure the memory of reading a large orthophoto without building all of it.
+--write-geotiff PATH --tile-km SIDE only writes a SIDE x SIDE km tiled GeoTIFF made by repeating
+the rendered orthophoto (written one strip at a time), for those memory measurements.
 
-Stages are timed from this script without touching library code: the mapper's segmenter,
-segment describer and global describer are wrapped in timing proxies, and
+Stages of the single-process build are timed from this script without touching library code: the
+mapper's segmenter, segment describer and global describer are wrapped in timing proxies, and
 `segments_to_primitives` (conversion) is wrapped where aerial_map looks it up. "other" is the
-rest (patch cropping, mask -> world points, bookkeeping, stacking).
-Memory: ru_maxrss (peak resident set, MiB) after the world/orthophoto and after the map build.
-With --workers N > 1 the same map is then built again with `aerial_map.workers` = N (worker
-processes, no stage breakdown), checked identical, and the speed-up printed. Worker start-up
-(a fresh interpreter importing torch, about 3 s) is included, so small images gain less.
+rest (reading patches, mask -> world points, bookkeeping, stacking).
+With --workers N > 1 the same map is then built with N local worker processes, and with
+--engine ray also on a local Ray cluster with N CPUs (N actors); each is checked identical.
+Worker and cluster start-up (fresh interpreters importing torch, about 3 s; Ray's own services)
+is included, so small images gain less.
+
+Memory, MiB: this process's peak (VmHWM); the largest finished child process's peak
+(RUSAGE_CHILDREN: local workers once the pool is shut down, and Ray's services started by this
+process if they have been waited for); and the peak of the summed current RSS of this process and
+all its descendants, sampled every 0.2 s (counts Ray's raylet, GCS and worker processes, which
+are descendants of a cluster started here; shared pages are counted once per process; short
+peaks between samples are missed). Ray's object store is shared memory, counted in the processes
+that map it.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import resource
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -28,6 +47,7 @@ import torch
 
 import meridian_torch.mapping.aerial_map as aerial_map_module
 from meridian_torch.config import load_config
+from meridian_torch.io.ortho_source import OrthophotoSource, open_orthophoto
 from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
 from meridian_torch.mapping.tiling import tile_image
 from meridian_torch.runtime import peak_rss_mib
@@ -68,44 +88,147 @@ def _patch_count(size_m: float, mpp: float, patch_m: float, overlap: float) -> i
     return len(tile_image(n, n, mpp, (0.0, 0.0), patch_m, overlap))
 
 
+def _children_peak_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
+def _tree_rss_mib(root: int) -> float:
+    """Summed VmRSS of `root` and its descendants (from /proc), MiB."""
+    parents, rss = {}, {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/status") as f:
+                fields = dict(line.split(":", 1) for line in f if ":" in line)
+            parents[int(entry.name)] = int(fields["PPid"])
+            rss[int(entry.name)] = int(fields.get("VmRSS", "0 kB").split()[0]) / 1024.0
+        except (OSError, KeyError, ValueError):
+            continue
+    tree, grew = {root}, True
+    while grew:
+        added = {pid for pid, ppid in parents.items() if ppid in tree and pid not in tree}
+        tree |= added
+        grew = bool(added)
+    return sum(rss.get(pid, 0.0) for pid in tree)
+
+
+class TreePeak:
+    """Peak of the summed RSS of this process and its descendants, sampled in a thread."""
+
+    def __init__(self, interval_s: float = 0.2) -> None:
+        self.peak_mib = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(interval_s,), daemon=True)
+
+    def _run(self, interval_s: float) -> None:
+        while not self._stop.is_set():
+            self.peak_mib = max(self.peak_mib, _tree_rss_mib(os.getpid()))
+            self._stop.wait(interval_s)
+
+    def __enter__(self) -> "TreePeak":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def _write_tiled_geotiff(path: Path, image: np.ndarray, mpp: float, width_px: int, height_px: int) -> None:
+    """A tiled RGB GeoTIFF of width_px x height_px repeating `image`, written one strip at a time."""
+    import rasterio
+    from rasterio.transform import from_origin
+    from rasterio.windows import Window
+
+    h, w = image.shape[:2]
+    strip_rows = 512
+    with rasterio.open(path, "w", driver="GTiff", width=width_px, height=height_px, count=3, dtype="uint8",
+                       crs="EPSG:32632", transform=from_origin(458_000.0, 5_429_000.0, mpp, mpp),
+                       photometric="RGB", compress="deflate", tiled=True, blockxsize=512, blockysize=512) as ds:
+        for r0 in range(0, height_px, strip_rows):
+            rows = (np.arange(r0, min(r0 + strip_rows, height_px)) % h)[:, None]
+            cols = (np.arange(width_px) % w)[None, :]
+            ds.write(np.moveaxis(image[rows, cols], -1, 0), window=Window(0, r0, width_px, rows.shape[0]))
+
+
+def _identical(a, b) -> bool:
+    return all(torch.equal(v, getattr(b.primitives, k)) for k, v in vars(a.primitives).items()) and torch.equal(
+        a.global_descriptors, b.global_descriptors)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size-m", type=float, default=1000.0, help="world side length (m); < 1000 extrapolates")
     ap.add_argument("--mpp", type=float, default=0.3, help="orthophoto metres per pixel")
-    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads of this process")
     ap.add_argument("--config", type=Path, default=REPO / "configs" / "default.yaml")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
     ap.add_argument("--max-patches", type=int, default=None,
-                    help="build only the first N patches of the tiling (time per patch is extrapolated)")
+                    help="build only a north-west crop of about N patches (time per patch is extrapolated)")
     ap.add_argument("--workers", type=int, default=2,
-                    help="also build with this many worker processes and compare (1: skip)")
+                    help="also build with this many local worker processes and compare (1: skip)")
+    ap.add_argument("--engine", choices=["local", "ray"], default="local",
+                    help="ray: also build on a local Ray cluster with --workers CPUs and compare")
+    ap.add_argument("--geotiff", type=Path, default=None, help="build from this orthophoto file (no world)")
+    ap.add_argument("--read-only", action="store_true",
+                    help="only read every patch box of the tiling through the file (no description): the reader's "
+                         "time and peak memory over the whole orthophoto")
+    ap.add_argument("--write-geotiff", type=Path, default=None, help="only write a tiled GeoTIFF (--tile-km)")
+    ap.add_argument("--tile-km", type=float, default=2.0, help="side of the --write-geotiff image, km")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-
-    from meridian_torch.sim.ortho_render import render_orthophoto
-    from meridian_torch.sim.simulate import _stage_seeds, build_world
 
     overrides = [f"sim.world.size_m=[{args.size_m},{args.size_m}]", f"sim.ortho.meters_per_pixel={args.mpp}", *args.set]
     cfg = load_config(args.config, overrides)
     t0 = time.perf_counter()
-    world = build_world(cfg.sim)
-    ortho = render_orthophoto(world, cfg.sim.ortho, _stage_seeds(cfg.sim.seed)["ortho"])
-    del world
-    t_world = time.perf_counter() - t0
-    if args.max_patches is not None:  # a north-west crop holding about that many patches
-        from meridian_torch.io.ortho import Orthophoto
+    with tempfile.TemporaryDirectory(prefix="bench_aerial_") as tmp:
+        ortho_path = args.geotiff
+        if ortho_path is None or args.write_geotiff is not None:
+            from meridian_torch.sim.ortho_render import render_orthophoto
+            from meridian_torch.sim.simulate import _stage_seeds, build_world
 
+            world = build_world(cfg.sim)
+            rendered = render_orthophoto(world, cfg.sim.ortho, _stage_seeds(cfg.sim.seed)["ortho"])
+            del world
+            height_px, width_px = rendered.image.shape[:2]
+            if args.write_geotiff is not None:
+                width_px = height_px = side_px = int(round(args.tile_km * 1000.0 / args.mpp))
+            ortho_path = args.write_geotiff or Path(tmp) / "ortho.tif"
+            _write_tiled_geotiff(ortho_path, rendered.image, rendered.meters_per_pixel, width_px, height_px)
+            del rendered
+            if args.write_geotiff is not None:
+                print(f"wrote {ortho_path}: {side_px}x{side_px} px = {(side_px * args.mpp / 1000) ** 2:.2f} km^2, "
+                      f"{ortho_path.stat().st_size / 2**20:.0f} MiB ({time.perf_counter() - t0:.0f} s)")
+                return 0
+        return _bench(args, cfg, overrides, ortho_path, time.perf_counter() - t0)
+
+
+def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path, t_world: float) -> int:
+    ortho: OrthophotoSource = open_orthophoto(ortho_path)
+    full_w, full_h = ortho.size_px
+    if args.max_patches is not None:  # a north-west crop holding about that many patches, read from the file
         side_patches = max(1, int(np.ceil(np.sqrt(args.max_patches))))
         stride = cfg.aerial_map.patch_size_m * (1 - cfg.aerial_map.patch_overlap)
         side_px = int(round((cfg.aerial_map.patch_size_m + (side_patches - 1) * stride) / args.mpp))
-        ortho = Orthophoto(np.ascontiguousarray(ortho.image[:side_px, :side_px]), ortho.meters_per_pixel,
-                           ortho.origin_xy, ortho.crs)
+        ortho = dataclasses.replace(ortho, size_px=(min(side_px, full_w), min(side_px, full_h)))
     rss_before = peak_rss_mib()
     w, h = ortho.size_px
     area_km2 = w * h * args.mpp**2 / 1e6
-    print(f"world + orthophoto: {t_world:.1f} s; image {w}x{h} px = {area_km2:.3f} km^2; "
-          f"peak RSS so far {rss_before:.0f} MiB", flush=True)
+    print(f"orthophoto {ortho_path.name}: {full_w}x{full_h} px = {full_w * full_h * args.mpp**2 / 1e6:.3f} km^2 "
+          f"({ortho_path.stat().st_size / 2**20:.0f} MiB file; whole in memory would be "
+          f"{full_w * full_h * 3 / 2**20:.0f} MiB); building {w}x{h} px = {area_km2:.3f} km^2; "
+          f"world + file {t_world:.1f} s; peak RSS so far {rss_before:.0f} MiB", flush=True)
 
+    if args.read_only:
+        grid = tile_image(w, h, args.mpp, (0.0, 0.0), cfg.aerial_map.patch_size_m, cfg.aerial_map.patch_overlap)
+        t0 = time.perf_counter()
+        for box in grid.pixel_boxes:
+            ortho.read_box(box)
+        seconds = time.perf_counter() - t0
+        print(f"read {len(grid)} patch boxes in {seconds:.1f} s ({seconds / len(grid) * 1e3:.1f} ms each); "
+              f"peak RSS {peak_rss_mib():.0f} MiB (+{peak_rss_mib() - rss_before:.0f} MiB)")
+        return 0
     mapper = AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives)
     timer = StageTimer()
     mapper.segmenter = _Proxy(mapper.segmenter, "segment", timer.wrap("segmentation", mapper.segmenter.segment))
@@ -123,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             done[0] = k
 
         t0 = time.perf_counter()
-        amap = build_aerial_map(ortho, mapper, progress=progress)
+        with TreePeak() as tree:
+            amap = build_aerial_map(ortho, mapper, progress=progress)
         total = time.perf_counter() - t0
     finally:
         aerial_map_module.segments_to_primitives = original
@@ -135,8 +259,10 @@ def main(argv: list[str] | None = None) -> int:
     minutes_km2 = per_patch * n_km2 / 60.0
     n_points = int(amap.primitives.point_valid.sum())
     n_lines = int(amap.primitives.line_valid.sum())
+    map_mib = (sum(v.nbytes for v in vars(amap.primitives).values()) + amap.global_descriptors.nbytes) / 2**20
     print(f"\nbuild_aerial_map: {n_patches} patches in {total:.1f} s = {per_patch:.2f} s/patch "
-          f"({torch.get_num_threads()} torch threads); {n_points} points, {n_lines} lines")
+          f"({torch.get_num_threads()} torch threads); {n_points} points, {n_lines} lines; map arrays "
+          f"{map_mib:.1f} MiB ({map_mib * 1024 / n_patches:.0f} KiB per patch)")
     print(f"{'stage':<20} {'seconds':>8} {'share':>6} {'s/patch':>8} {'calls':>6}")
     stages = dict(timer.seconds)
     stages["other"] = total - sum(stages.values())
@@ -146,23 +272,28 @@ def main(argv: list[str] | None = None) -> int:
           f"(edge patches of a small image overlap more)")
     print(f"1 km^2 at {args.mpp} m/px = {n_km2} patches -> {minutes_km2:.1f} min "
           f"= {1 / minutes_km2:.4f} km^2/min (extrapolated from s/patch)")
-    print(f"peak RSS: {rss_before:.0f} MiB after world + orthophoto, {rss_after:.0f} MiB after the map build "
-          f"(+{rss_after - rss_before:.0f} MiB)")
+    print(f"peak RSS: {rss_before:.0f} MiB before the build, {rss_after:.0f} MiB after it "
+          f"(+{rss_after - rss_before:.0f} MiB); process tree sampled {tree.peak_mib:.0f} MiB")
+
+    runs = []
     if args.workers > 1:
-        cfg_w = load_config(args.config, [*overrides, f"aerial_map.workers={args.workers}"])
+        runs.append((f"{args.workers} local worker processes", [f"aerial_map.workers={args.workers}"]))
+    if args.engine == "ray":
+        runs.append((f"Ray, local cluster of {args.workers} CPUs",
+                     [f"aerial_map.workers={args.workers}", "aerial_map.engine=ray"]))
+    for name, run_overrides in runs:
+        cfg_w = load_config(args.config, [*overrides, *run_overrides])
         mapper_w = AerialMapper.from_config(cfg_w.aerial_map, cfg_w.perception, cfg_w.primitives)
         t0 = time.perf_counter()
-        amap_w = build_aerial_map(ortho, mapper_w)
+        with TreePeak() as tree:
+            amap_w = build_aerial_map(ortho, mapper_w)
         total_w = time.perf_counter() - t0
-        same = all(
-            torch.equal(getattr(amap.primitives, k), getattr(amap_w.primitives, k))
-            for k in ("points_xy", "point_valid", "line_endpoints", "line_valid", "line_descriptors")
-        )
         minutes_w = total_w / n_patches * n_km2 / 60.0
-        print(f"\n{args.workers} worker processes: {total_w:.1f} s = {total_w / n_patches:.2f} s/patch, "
-              f"{total / total_w:.2f}x the single process; identical map: {same}")
-        print(f"1 km^2 -> {minutes_w:.1f} min = {1 / minutes_w:.4f} km^2/min "
-              f"(each worker holds its own copy of the orthophoto and the back ends)")
+        print(f"\n{name}: {total_w:.1f} s = {total_w / n_patches:.2f} s/patch, {total / total_w:.2f}x the "
+              f"single process; identical map: {_identical(amap, amap_w)}")
+        print(f"1 km^2 -> {minutes_w:.1f} min = {1 / minutes_w:.4f} km^2/min; {area_km2 / (total_w / 60):.4f} "
+              f"km^2/min measured. Peak RSS, MiB: this process {peak_rss_mib():.0f}, largest finished child "
+              f"{_children_peak_mib():.0f}, process tree sampled {tree.peak_mib:.0f}")
     return 0
 
 
