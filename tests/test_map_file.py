@@ -8,6 +8,7 @@ import torch
 
 from meridian_torch.io import map_file
 from meridian_torch.io.map_file import MapFileError, load_aerial_map, save_aerial_map
+from meridian_torch.io.npz_container import write_container
 from meridian_torch.mapping.tiling import tile_image
 from meridian_torch.types import AerialMap, PrimitiveSet, stack_primitive_sets
 
@@ -57,6 +58,105 @@ def test_round_trip(tmp_path: Path) -> None:
     assert not list(tmp_path.glob(".*")), "no temporary files left behind"
 
 
+def _all_arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:
+    return {**map_file._arrays(aerial_map), **{f"patches.{k}": v for k, v in vars(aerial_map.patches).items()}}
+
+
+def _save_version_2(aerial_map: AerialMap, path: Path) -> None:
+    """The file version 2 wrote: the same arrays, compressed."""
+    write_container(path, map_file.MAP_FORMAT, 2, map_file._header(aerial_map), map_file._arrays(aerial_map))
+
+
+def _data_offsets(path: Path) -> dict[str, int]:
+    """File offset of each stored array's first data byte (after the zip and .npy headers)."""
+    import struct
+    import zipfile
+
+    offsets = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as fh:
+        for info in zf.infolist():
+            assert info.compress_type == zipfile.ZIP_STORED
+            fh.seek(info.header_offset + 26)
+            name_len, extra_len = struct.unpack("<HH", fh.read(4))
+            fh.seek(info.header_offset + 30 + name_len + extra_len)
+            np.lib.format.read_magic(fh)
+            np.lib.format.read_array_header_1_0(fh)  # the writer's headers are version 1.0
+            offsets[info.filename.removesuffix(".npy")] = fh.tell()
+    return offsets
+
+
+def test_mapped_map_equals_the_compressed_one(tmp_path: Path) -> None:
+    """A version 3 map is read as memory maps of its file and gives exactly the arrays of the same
+    map written as version 2 (compressed, read whole), which still loads."""
+    original = _map()
+    _save_version_2(original, tmp_path / "v2.mtm")
+    save_aerial_map(original, tmp_path / "v3.mtm")
+    eager, mapped = load_aerial_map(tmp_path / "v2.mtm"), load_aerial_map(tmp_path / "v3.mtm")
+    for name, array in _all_arrays(eager).items():
+        other = _all_arrays(mapped)[name]
+        assert array.dtype == other.dtype and np.array_equal(array, other), name
+    maps = Path("/proc/self/maps")
+    if maps.exists():
+        assert str(tmp_path / "v3.mtm") in maps.read_text() and str(tmp_path / "v2.mtm") not in maps.read_text()
+    assert all(offset % 64 == 0 for offset in _data_offsets(tmp_path / "v3.mtm").values())
+
+
+def test_writing_to_a_mapped_map_never_changes_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "m.mtm"
+    save_aerial_map(_map(), path)
+    before = path.read_bytes()
+    loaded = load_aerial_map(path)
+    loaded.primitives.points_xy.add_(1.0)  # copy-on-write: the process's own pages
+    loaded.patches.bounds_xy[:] = 0.0
+    assert path.read_bytes() == before
+    assert torch.equal(load_aerial_map(path).primitives.points_xy, _map().primitives.points_xy)
+
+
+def test_large_members_stay_aligned(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Members over the zip64 limit get a longer local header; their data is still aligned."""
+    import zipfile
+
+    monkeypatch.setattr(zipfile, "ZIP64_LIMIT", 4096)
+    path = tmp_path / "m.mtm"
+    save_aerial_map(_map(), path)
+    assert all(offset % 64 == 0 for offset in _data_offsets(path).values())
+    assert torch.equal(load_aerial_map(path).primitives.line_descriptors, _map().primitives.line_descriptors)
+
+
+@pytest.mark.parametrize("name", ["points_xy", "line_valid", "global_descriptors", "patch_bounds_xy", "header.json"])
+def test_a_changed_byte_is_refused_at_open(tmp_path: Path, name: str) -> None:
+    """One byte changed in place in any stored array: the map is refused before any array is returned."""
+    path = tmp_path / "m.mtm"
+    save_aerial_map(_map(), path)
+    data = bytearray(path.read_bytes())
+    offset = _data_offsets(path)[name] + (10 if name == "header.json" else 0)
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match=rf"^{path}: .*(corrupted|header)"):
+        load_aerial_map(path)
+
+
+def test_failed_write_keeps_the_old_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from meridian_torch.io import npz_container
+
+    path = tmp_path / "m.mtm"
+    save_aerial_map(_map(), path)
+    before = path.read_bytes()
+    calls = []
+
+    def failing_header(array: np.ndarray) -> bytes:
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("disk full")
+        return header(array)
+
+    header = npz_container._npy_header
+    monkeypatch.setattr(npz_container, "_npy_header", failing_header)
+    with pytest.raises(OSError, match="disk full"):
+        save_aerial_map(_map(), path)
+    assert path.read_bytes() == before and not list(tmp_path.glob(".*"))
+
+
 def test_corruption_is_detected(tmp_path: Path) -> None:
     path = tmp_path / "m.mtm"
     save_aerial_map(_map(), path)
@@ -83,9 +183,9 @@ def test_other_version_and_config_are_refused(tmp_path: Path, monkeypatch: pytes
     save_aerial_map(_map(), path)
     with pytest.raises(MapFileError, match=r"aerial_map\.patch_size_m"):
         load_aerial_map(path, expected_config={"aerial_map": {"patch_size_m": 40.0}})
-    monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 3)
+    monkeypatch.setattr(map_file, "MAP_FORMAT_VERSION", 4)
     save_aerial_map(_map(), path)
-    with pytest.raises(MapFileError, match="format version 3"):
+    with pytest.raises(MapFileError, match="format version 4"):
         load_aerial_map(path)
 
 

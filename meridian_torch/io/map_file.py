@@ -1,4 +1,4 @@
-"""The aerial map file (`.mtm`), format version 1.
+"""The aerial map file (`.mtm`), format version 3.
 
 A `.mtm` file is a zip archive (numpy `.npz` layout) holding:
 - `header.json` (stored as a uint8 array): `format` = "meridian-torch aerial map",
@@ -18,6 +18,9 @@ A `.mtm` file is a zip archive (numpy `.npz` layout) holding:
 All coordinates are metres (x east, y north) in the map frame: world minus `local_origin`, so
 that float32 arrays stay exact to the millimetre in a projected CRS (UTM northings are ~5e6 m).
 Version 1 files (world coordinates, no local origin) are read with a local origin of (0, 0).
+Version 3 stores the arrays uncompressed at aligned offsets (`io.npz_container`), so a map is
+opened as memory maps of the file: only the pages a reader touches come into memory, and the
+kernel can drop them again. Versions 1 and 2 (compressed) are read whole into memory.
 Files are written atomically.
 """
 
@@ -39,8 +42,8 @@ __all__ = [
 ]
 
 MAP_FORMAT = "meridian-torch aerial map"
-MAP_FORMAT_VERSION = 2
-_READABLE_VERSIONS = (1, 2)  # version 1: world coordinates = map frame
+MAP_FORMAT_VERSION = 3
+_READABLE_VERSIONS = (1, 2, 3)  # version 1: world coordinates = map frame; 1 and 2: compressed
 
 _PRIMITIVE_FIELDS = (
     "points_xy", "point_descriptors", "point_valid",
@@ -82,7 +85,9 @@ def _header(aerial_map: AerialMap) -> dict[str, Any]:
 
 def save_aerial_map(aerial_map: AerialMap, path: Path) -> str:
     """Write `aerial_map` to `path` atomically and return its content hash."""
-    digest = write_container(path, MAP_FORMAT, MAP_FORMAT_VERSION, _header(aerial_map), _arrays(aerial_map))
+    digest = write_container(
+        path, MAP_FORMAT, MAP_FORMAT_VERSION, _header(aerial_map), _arrays(aerial_map), compressed=False
+    )
     aerial_map.content_hash = digest
     return digest
 
@@ -97,7 +102,10 @@ def _config_differences(stored: Any, expected: Any, prefix: str = "") -> list[st
 
 
 def load_aerial_map(path: Path, expected_config: dict[str, Any] | None = None) -> AerialMap:
-    """Read and verify a map file; `expected_config` (if given) must equal the stored config."""
+    """Read and verify a map file; `expected_config` (if given) must equal the stored config.
+
+    The arrays of a version 3 file are memory maps of it (copy-on-write: writing to a tensor never
+    changes the file); the whole file is hashed first, in chunks, without keeping it in memory."""
     header, arrays = read_container(path, MAP_FORMAT, _READABLE_VERSIONS, MapFileError, "aerial map file", "rebuild the map")
     if expected_config is not None:
         diffs = _config_differences(header["config"], expected_config)

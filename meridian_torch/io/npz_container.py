@@ -1,15 +1,21 @@
-"""The container shared by our binary files (aerial maps, ground submaps): an `.npz` zip of
-named arrays plus `header.json` (a uint8 array) carrying `format`, `format_version`,
+"""The container shared by our binary files (aerial maps, ground submaps): a zip (numpy `.npz`
+layout) of named arrays plus `header.json` (a uint8 array) carrying `format`, `format_version`,
 `package_version` and a `content_hash` (sha256 over the rest of the header and every array).
-Written atomically; reading checks the format, its version and the hash."""
+
+Arrays are written compressed (`np.savez_compressed`, read whole) or stored: uncompressed, each
+array's data at a 64-byte aligned file offset, and read as copy-on-write memory maps of the file,
+so that opening costs the hash, not a copy (the hash is computed by reading the file in chunks,
+which does not keep it in memory). Written atomically; reading checks the format, its version
+and the hash before any array is returned."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import struct
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, NamedTuple
 
 import numpy as np
 
@@ -19,19 +25,87 @@ from meridian_torch.io.atomic import atomic_path
 
 __all__ = ["content_hash", "write_container", "read_container"]
 
+_ALIGN = 64  # bytes: array data starts at a multiple (numpy pads .npy headers to it as well)
+_PAD_EXTRA_ID = 0xD935  # the zip extra field that zipalign pads with
+_LOCAL_HEADER = struct.Struct("<4s2B4HL2L2H")  # zip local file header, 30 bytes
+_ZIP64_EXTRA = 20  # bytes zipfile adds to a local header for a member over ZIP64_LIMIT
+_CHUNK = 1 << 24  # bytes read at once while hashing a stored array
+
+
+class _Stored(NamedTuple):
+    """Where one stored array's data lies in the file."""
+
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    offset: int
+
+
+def _hash_start(header: dict[str, Any]) -> Any:
+    return hashlib.sha256(json.dumps({k: v for k, v in header.items() if k != "content_hash"}, sort_keys=True).encode())
+
+
+def _array_tag(name: str, dtype: np.dtype, shape: tuple[int, ...]) -> bytes:
+    return f"{name}:{dtype.str}:{shape}".encode()
+
 
 def content_hash(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
     """sha256 over the header (without its own hash) and every array's name, dtype, shape and bytes."""
-    h = hashlib.sha256(json.dumps({k: v for k, v in header.items() if k != "content_hash"}, sort_keys=True).encode())
+    h = _hash_start(header)
     for name in sorted(arrays):
         a = arrays[name]
-        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+        h.update(_array_tag(name, a.dtype, a.shape))
         h.update(a.tobytes())
     return h.hexdigest()
 
 
-def write_container(path: Path, fmt: str, version: int, header: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
-    """Write `arrays` and `header` (format fields and hash added) to `path` atomically; returns the hash."""
+def _stored_content_hash(header: dict[str, Any], fh: IO[bytes], stored: dict[str, _Stored]) -> str:
+    """`content_hash` of stored arrays, read from the open file `fh` in chunks."""
+    h = _hash_start(header)
+    for name in sorted(stored):
+        dtype, shape, offset = stored[name]
+        h.update(_array_tag(name, dtype, shape))
+        fh.seek(offset)
+        left = int(np.prod(shape)) * dtype.itemsize
+        while left:
+            chunk = fh.read(min(left, _CHUNK))
+            if not chunk:
+                raise EOFError(f"array {name} is truncated")
+            h.update(chunk)
+            left -= len(chunk)
+    return h.hexdigest()
+
+
+def _write_stored(fh: IO[bytes], arrays: dict[str, np.ndarray]) -> None:
+    """Arrays as uncompressed `.npy` zip members whose data start at multiples of `_ALIGN`."""
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
+        for name, array in arrays.items():
+            array = np.ascontiguousarray(array)
+            npy_header = _npy_header(array)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.file_size = len(npy_header) + array.nbytes
+            zip64 = info.file_size * 1.05 > zipfile.ZIP64_LIMIT  # zipfile's own rule
+            start = fh.tell() + _LOCAL_HEADER.size + len(info.filename.encode()) + 4 + _ZIP64_EXTRA * zip64
+            info.extra = struct.pack("<HH", _PAD_EXTRA_ID, -start % _ALIGN) + bytes(-start % _ALIGN)
+            with zf.open(info, "w", force_zip64=zip64) as member:
+                member.write(npy_header)
+                member.write(array.reshape(-1).view(np.uint8))
+
+
+def _npy_header(array: np.ndarray) -> bytes:
+    from io import BytesIO
+
+    buffer = BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, np.lib.format.header_data_from_array_1_0(array))
+    return buffer.getvalue()
+
+
+def write_container(
+    path: Path, fmt: str, version: int, header: dict[str, Any], arrays: dict[str, np.ndarray], *, compressed: bool = True
+) -> str:
+    """Write `arrays` and `header` (format fields and hash added) to `path` atomically; returns the hash.
+
+    `compressed=False` stores the arrays uncompressed and aligned, for `read_container` to map.
+    """
     header = {"format": fmt, "format_version": version, "package_version": __version__, **header}
     header["content_hash"] = content_hash(header, arrays)
     stored = dict(arrays)
@@ -39,8 +113,70 @@ def write_container(path: Path, fmt: str, version: int, header: dict[str, Any], 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **stored)
+        if compressed:
+            np.savez_compressed(fh, **stored)
+        else:
+            _write_stored(fh, stored)
     return header["content_hash"]
+
+
+def _stored_arrays(fh: IO[bytes], members: list[zipfile.ZipInfo]) -> dict[str, _Stored]:
+    """Where each uncompressed `.npy` member's array lies (from the local headers and .npy headers)."""
+    stored = {}
+    for info in members:
+        fh.seek(info.header_offset)
+        fields = _LOCAL_HEADER.unpack(fh.read(_LOCAL_HEADER.size))
+        if fields[0] != b"PK\x03\x04":
+            raise zipfile.BadZipFile(f"bad local header of {info.filename}")
+        start = info.header_offset + _LOCAL_HEADER.size + fields[-2] + fields[-1]
+        fh.seek(start)
+        major, _ = np.lib.format.read_magic(fh)
+        read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+        shape, fortran_order, dtype = read_header(fh)
+        if fortran_order or dtype.hasobject:
+            raise ValueError(f"{info.filename} is not a C-ordered array of numbers")
+        offset = fh.tell()
+        if offset + int(np.prod(shape)) * dtype.itemsize > start + info.file_size:
+            raise EOFError(f"{info.filename} is truncated")
+        stored[info.filename.removesuffix(".npy")] = _Stored(dtype, shape, offset)
+    return stored
+
+
+def _mapped(path: Path, stored: _Stored) -> np.ndarray:
+    """A copy-on-write memory map of one stored array (writes stay in this process, the file is
+    never changed; writable, so torch.from_numpy takes it as it is)."""
+    if int(np.prod(stored.shape)) == 0:  # mmap cannot map zero bytes
+        return np.empty(stored.shape, stored.dtype)
+    return np.memmap(path, stored.dtype, "c", stored.offset, stored.shape).view(np.ndarray)
+
+
+def _read_arrays(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any], str]:
+    """(arrays without the header, the header, the content hash of what was read)."""
+    with zipfile.ZipFile(path) as zf:
+        members = zf.infolist()
+        if any(info.compress_type != zipfile.ZIP_STORED for info in members):
+            with np.load(path, allow_pickle=False) as npz:
+                arrays = {name: npz[name] for name in npz.files}
+            header = _header(arrays.pop("header.json", None))
+            return arrays, header, content_hash(header, arrays)
+    with open(path, "rb") as fh:
+        stored = _stored_arrays(fh, members)
+        if "header.json" not in stored:
+            return {}, _header(None), ""
+        header_part = stored.pop("header.json")
+        fh.seek(header_part.offset)
+        header = _header(np.frombuffer(fh.read(int(np.prod(header_part.shape))), np.uint8))
+        digest = _stored_content_hash(header, fh, stored)
+    return {name: _mapped(path, part) for name, part in stored.items()}, header, digest
+
+
+def _header(array: np.ndarray | None) -> dict[str, Any]:
+    """header.json's dict, {} when it is missing or unreadable."""
+    try:
+        header = json.loads(array.tobytes().decode())
+    except (AttributeError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+    return header if isinstance(header, dict) else {}
 
 
 def read_container(
@@ -49,6 +185,7 @@ def read_container(
     """(header, arrays) of a verified file; problems raise `error` naming `path`.
 
     `version` is the format version this package reads, or a tuple of the versions it reads.
+    Stored (uncompressed) files give memory-mapped arrays, compressed ones arrays in memory.
 
     `what` names the file kind in messages ("aerial map file"), `redo` what the user should do
     about an old or corrupted file ("rebuild the map").
@@ -59,15 +196,12 @@ def read_container(
     if not zipfile.is_zipfile(path):  # numpy would guess a pickle and advise loading it unsafely
         raise error(f"{path}: not a meridian-torch {what} (not a zip archive); {redo}")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
+        arrays, header, digest = _read_arrays(path)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         detail = "it holds Python objects" if "pickle" in str(exc) else str(exc)
         raise error(f"{path}: not a readable {what} ({detail}); {redo}") from None
-    try:
-        header = json.loads(arrays.pop("header.json").tobytes().decode())
-    except (KeyError, UnicodeDecodeError, json.JSONDecodeError):
-        raise error(f"{path}: missing or unreadable header.json") from None
+    if not header:
+        raise error(f"{path}: missing or unreadable header.json")
     if header.get("format") != fmt:
         raise error(f"{path}: not a meridian-torch {what} (format {header.get('format')!r})")
     readable = version if isinstance(version, tuple) else (version,)
@@ -76,6 +210,6 @@ def read_container(
             f"{path}: {what} format version {header.get('format_version')} (written by meridian-torch "
             f"{header.get('package_version')}), this version reads {' or '.join(map(str, readable))}; {redo}"
         )
-    if content_hash(header, arrays) != header.get("content_hash"):
+    if digest != header.get("content_hash"):
         raise error(f"{path}: content hash mismatch, the file is corrupted; {redo}")
     return header, arrays
