@@ -345,7 +345,8 @@ def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse:
     rng = np.random.default_rng(seed)
     c = _near_gate_pool(rng, n_submaps=int(rng.integers(2, 9)), per_submap=int(rng.integers(1, 12)))
     cfg = BackendConfig(path_length_scaling=scaling, fuse_quality=fuse)
-    with mock.patch.object(consistency, "_CHUNK_PAIRS", 7 if tiny_chunks else consistency._CHUNK_PAIRS):
+    with (mock.patch.object(consistency, "_CHUNK_PAIRS", 7 if tiny_chunks else consistency._CHUNK_PAIRS),
+          mock.patch.object(consistency, "_CHUNK_QUERIES", 3 if tiny_chunks else consistency._CHUNK_QUERIES)):
         i, j, v = _sparse_equal_to_dense(c, cfg)
     # a prefix's edges plus the new pairs are the whole graph
     first_new = int(rng.integers(0, len(c) + 1))

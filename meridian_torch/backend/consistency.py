@@ -129,7 +129,11 @@ def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
     return torch.unique(key, dim=0, return_inverse=True)
 
 
-_CHUNK_PAIRS = 1 << 21  # pairs scored at once (memory: a few hundred bytes each in temporaries)
+# Pairs scored at once: each costs ~500 bytes in gathered candidates and temporaries, so 2^18
+# pairs hold ~130 MiB (2^21 held ~1 GiB, the peak of a run before its fix); larger chunks were
+# no faster. Radius queries run in chunks of queries for the same reason (their hits are Python lists).
+_CHUNK_PAIRS = 1 << 18
+_CHUNK_QUERIES = 1 << 12
 
 
 def _cat_edges(parts: list[Edges]) -> Edges:
@@ -172,11 +176,16 @@ def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, ot
     xy = c.T_world_base[mine, :2, 2]
     extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
     wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
-    hits = cKDTree(xy.numpy()).query_ball_point(predicted[~wide].numpy(), radius[~wide].numpy())
-    counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
-    flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-    queried = _pair_edges(c, cfg, mine[torch.from_numpy(flat)], others[~wide].repeat_interleave(counts))
-    return _cat_edges([queried, _block_edges(c, cfg, mine, others[wide])])
+    tree = cKDTree(xy.numpy())
+    queries, query_xy, query_radius = others[~wide], predicted[~wide].numpy(), radius[~wide].numpy()
+    parts = []
+    for k in range(0, len(queries), _CHUNK_QUERIES):
+        hits = tree.query_ball_point(query_xy[k : k + _CHUNK_QUERIES], query_radius[k : k + _CHUNK_QUERIES])
+        counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
+        flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
+        parts.append(_pair_edges(c, cfg, mine[torch.from_numpy(flat)],
+                                 queries[k : k + _CHUNK_QUERIES].repeat_interleave(counts)))
+    return _cat_edges([*parts, _block_edges(c, cfg, mine, others[wide])])
 
 
 def _block_edges(c: LoopClosureCandidates, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
