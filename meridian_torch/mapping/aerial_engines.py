@@ -10,9 +10,10 @@ same blocks and yields their results in block order, so the map does not depend 
 - local, workers > 1: a spawn process pool, one mapper per process (CPU only).
 - ray: one actor per worker holding the orthophoto, the grid and the mapper (neural back ends
   load their weights once per actor; an actor takes a GPU when the mapper's device is CUDA),
-  blocks dispatched to whichever actor is free. Without `aerial_map.ray_address` a local cluster
-  with `workers` CPUs is started (and stopped afterwards); with it, the running cluster is joined.
-  A Ray session already initialised by the caller is used as it is. Ray is imported only here.
+  blocks dispatched to whichever actor is free; at most as many actors as the cluster has CPUs
+  (GPUs). Without `aerial_map.ray_address` a local cluster with `workers` CPUs is started (and
+  stopped afterwards); with it, the running cluster is joined. A Ray session already initialised
+  by the caller is used as it is. Ray is imported only here.
 """
 
 from __future__ import annotations
@@ -125,9 +126,15 @@ def _ray_blocks(
     actors = []
     try:
         gpus = 1 if mapper.device.type == "cuda" else 0
+        # No more actors than the cluster can place: a block sent to an actor still waiting for
+        # resources would wait with it.
+        resources = ray.cluster_resources()
+        capacity = int(resources.get("GPU", 0)) if gpus else int(resources.get("CPU", 1))
+        if capacity < 1:
+            raise ConfigError(f"aerial_map.engine = 'ray' on device {mapper.device}: the Ray cluster has no GPU")
         actor_class = ray.remote(num_cpus=1, num_gpus=gpus)(_BlockDescriber)
         state = [ray.put(v) for v in (ortho, grid, mapper)]  # stored once, shared by the actors
-        actors = [actor_class.remote(*state) for _ in range(min(aerial.workers, len(blocks)))]
+        actors = [actor_class.remote(*state) for _ in range(min(aerial.workers, len(blocks), capacity))]
         yield from ActorPool(actors).map(lambda actor, indices: actor.describe.remote(indices), blocks)
     finally:  # finished or interrupted: the actors (and a cluster started here) go
         for actor in actors:
