@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from meridian_torch.config.matching import AssociationConfig
+from meridian_torch.matching import associations
 from meridian_torch.matching.associations import putative_associations
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
@@ -76,14 +77,23 @@ def loop_reference(ground: PrimitiveSet, patches: list[PrimitiveSet], k: int, un
 
 @pytest.mark.parametrize("direction", ["ground_to_aerial", "union"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_batched_topk_equals_loop(direction: str, seed: int) -> None:
+@pytest.mark.parametrize("patches_per_chunk", [None, 1, 3])
+def test_batched_topk_equals_loop(direction: str, seed: int, patches_per_chunk: int | None,
+                                  monkeypatch: pytest.MonkeyPatch) -> None:
     gen = torch.Generator().manual_seed(seed)
     ground = random_set(9, 8, 16, gen)
     # Different sizes per patch, so the batch carries padding on both types.
     patches = [random_set(n_p, n_l, 16, gen) for n_p, n_l in ((12, 10), (3, 2), (7, 14), (0, 5))]
     k = 4
     batch = stack_primitive_sets(patches)
+    whole = putative_associations(ground, batch, k_prim=k, direction=direction, min_line_length_m=2.0)
+    if patches_per_chunk is not None:  # similarities ranked a few patches at a time: the same result
+        monkeypatch.setattr(associations, "_SIMILARITY_ELEMENTS", patches_per_chunk * 9 * 14)
     assoc = putative_associations(ground, batch, k_prim=k, direction=direction, min_line_length_m=2.0)
+    for name in ("pairs", "valid", "is_line"):
+        assert torch.equal(getattr(assoc, name), getattr(whole, name))
+    # the similarity product's rounding may depend on the batch's size (BLAS blocking)
+    torch.testing.assert_close(assoc.cosine, whole.cosine, rtol=0, atol=1e-12)
     ref = loop_reference(ground, patches, k, direction == "union", 2.0)
     for p in range(len(patches)):
         v = assoc.valid[p]
@@ -91,6 +101,12 @@ def test_batched_topk_equals_loop(direction: str, seed: int) -> None:
         assert set(got) == set(ref[p])
         for key, c in ref[p].items():
             assert got[key] == pytest.approx(c, abs=1e-12)
+        # valid pairs first, each block sorted by (ground index, aerial index)
+        for block in (~assoc.is_line[p], assoc.is_line[p]):
+            flags = v[block]
+            assert not (~flags[:-1] & flags[1:]).any()
+            keys = [tuple(x) for x in assoc.pairs[p][block][flags].tolist()]
+            assert keys == sorted(keys)
         # Padding is marked, and the point / line blocks hold their own type only.
         assert (assoc.pairs[p][~v] == -1).all() and (assoc.cosine[p][~v] == 0).all()
         g_idx, a_idx = assoc.pairs[p, :, 0], assoc.pairs[p, :, 1]

@@ -85,7 +85,43 @@ def line_keep_mask(endpoints: torch.Tensor, kinds: torch.Tensor, min_length_m: f
     return long_enough & (length > 0)
 
 
+# (patch, ground, aerial) similarities ranked at once. All 609 patches of a map before its fix
+# took up to 1.8 GiB in one piece; a patch's pairs do not depend on the other patches, so chunks
+# give the same pairs (the similarity product may round differently in the last bit).
+_SIMILARITY_ELEMENTS = 1 << 22
+
+
 def _type_pairs(
+    ground_desc: torch.Tensor,
+    ground_ok: torch.Tensor,
+    aerial_desc: torch.Tensor,
+    aerial_ok: torch.Tensor,
+    k: int,
+    direction: Direction,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`_chunk_pairs` over chunks of patches, padded to the widest chunk (same result, bounded memory)."""
+    per_patch = max(1, ground_ok.shape[0] * aerial_ok.shape[1])
+    step = max(1, _SIMILARITY_ELEMENTS // per_patch)
+    if aerial_ok.shape[0] <= step:
+        return _chunk_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
+    chunks = [
+        _chunk_pairs(ground_desc, ground_ok, aerial_desc[p : p + step], aerial_ok[p : p + step], k, direction)
+        for p in range(0, aerial_ok.shape[0], step)
+    ]
+    width = max(c[0].shape[1] for c in chunks)
+
+    def pad(x: torch.Tensor, value: float | bool) -> torch.Tensor:
+        shape = (x.shape[0], width - x.shape[1], *x.shape[2:])
+        return torch.cat([x, x.new_full(shape, value)], dim=1)
+
+    return (
+        torch.cat([pad(c[0], -1) for c in chunks]),
+        torch.cat([pad(c[1], False) for c in chunks]),
+        torch.cat([pad(c[2], 0.0) for c in chunks]),
+    )
+
+
+def _chunk_pairs(
     ground_desc: torch.Tensor,
     ground_ok: torch.Tensor,
     aerial_desc: torch.Tensor,
@@ -116,9 +152,12 @@ def _type_pairs(
     flat = selected.reshape(n_patches, n_ground * n_aerial)
     counts = flat.sum(dim=1)
     width = int(counts.max()) if flat.numel() > 0 else 0
-    # A stable descending sort of the flags puts each patch's selected pairs first, in ascending
-    # flat (= ground-major) order, so no per-patch nonzero() is needed.
-    order = torch.sort(flat.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :width]
+    # Each patch's selected pairs first, in ascending flat (= ground-major) order: one nonzero()
+    # over all patches (row-major) and each pair's rank within its patch.
+    patch, flat_index = torch.nonzero(flat, as_tuple=True)
+    rank = torch.arange(len(patch), device=flat.device) - (torch.cumsum(counts, 0) - counts)[patch]
+    order = torch.zeros(n_patches, width, dtype=torch.int64, device=flat.device)
+    order[patch, rank] = flat_index
     valid = torch.arange(width, device=flat.device)[None, :] < counts[:, None]
     pairs = torch.stack([order // max(n_aerial, 1), order % max(n_aerial, 1)], dim=-1)
     pairs = pairs.masked_fill(~valid[..., None], -1)
