@@ -143,7 +143,7 @@ def test_address_without_ray_backend_is_refused(ortho_files, tmp_path: Path) -> 
 def ray_cluster():
     """A local Ray cluster with 2 CPUs shared by the tests below (the engine uses it as it is)."""
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False)
     yield ray
     ray.shutdown()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -60,7 +61,7 @@ def build_map(
     overrides = [
         *([f"aerial_map.workers={workers}"] if workers else []),
         *([f"aerial_map.engine={backend}"] if backend else []),
-        *([f"aerial_map.ray_address={address}"] if address else []),
+        *([f"aerial_map.ray_address={json.dumps(address)}"] if address else []),  # quoted: YAML reads 1:20 as a number
     ]
     cfg = config_from_options(config, [*(set_ or []), *overrides])
     if address and cfg.aerial_map.engine != "ray":

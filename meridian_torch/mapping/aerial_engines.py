@@ -117,12 +117,17 @@ def _ray_blocks(
     aerial = mapper.aerial
     started = not ray.is_initialized()
     if started and aerial.ray_address is None:
-        ray.init(num_cpus=aerial.workers, include_dashboard=False, logging_level=logging.WARNING)
+        # address "local": a new cluster, even where `ray start` left one (or its address file) behind
+        ray.init(address="local", num_cpus=aerial.workers, include_dashboard=False, logging_level=logging.WARNING)
     elif started:
         try:
             ray.init(address=aerial.ray_address, logging_level=logging.WARNING)
         except ConnectionError as e:
-            raise ConfigError(f"aerial_map.ray_address = {aerial.ray_address!r}: cannot connect ({e})") from e
+            raise ConfigError(
+                f"aerial_map.ray_address = {aerial.ray_address!r}: cannot connect ({e}); a cluster with token "
+                "authentication (Ray's default) needs RAY_AUTH_MODE=token and its token (ray get-auth-token on "
+                "the head) in RAY_AUTH_TOKEN or ~/.ray/auth_token"
+            ) from e
     actors = []
     try:
         gpus = 1 if mapper.device.type == "cuda" else 0
