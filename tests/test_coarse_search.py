@@ -14,7 +14,7 @@ from meridian_torch.matching.place_recognition import (
     patch_priors,
     submap_scores,
 )
-from meridian_torch.matching.place_recognition.coarse import _rasterise
+from meridian_torch.matching.place_recognition.coarse import _cell_owners, _rasterise
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 from tests.numerics import reassociation_tolerance
 
@@ -220,3 +220,23 @@ def test_seeded_runs_are_identical() -> None:
         runs.append((cmap.class_centres, cmap.map_spectrum, volume))
     for a, b in zip(*runs):
         assert torch.equal(a, b)
+
+
+def test_cells_go_to_the_nearest_containing_patch() -> None:
+    """Block by block among overlapping patches equals a loop over every cell and patch: the
+    nearest containing centre, the lowest index on ties (a 50 % overlap grid has many), -1 off the map."""
+    _, bounds = _random_map(3, side=7)
+    bounds = bounds[torch.randperm(len(bounds), generator=torch.Generator().manual_seed(0))]  # ties by index, not by order
+    origin, cell_m, (h, w) = (-13.0, -9.0), 2.0, (80, 90)  # blocks cross patch edges; cells off the map
+    owner = _cell_owners(origin, cell_m, (h, w), bounds).view(h, w)
+    centres = torch.stack([(bounds[:, 0] + bounds[:, 1]) / 2, (bounds[:, 2] + bounds[:, 3]) / 2], -1)
+    for row in range(0, h, 3):
+        for col in range(0, w, 3):
+            x, y = origin[0] + (col + 0.5) * cell_m, origin[1] + (row + 0.5) * cell_m
+            best, best_d = -1, math.inf
+            for p in range(len(bounds)):
+                if bounds[p, 0] <= x <= bounds[p, 1] and bounds[p, 2] <= y <= bounds[p, 3]:
+                    d = math.hypot(x - float(centres[p, 0]), y - float(centres[p, 1]))
+                    if d < best_d:
+                        best, best_d = p, d
+            assert int(owner[row, col]) == best, (row, col)

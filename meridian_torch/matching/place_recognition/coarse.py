@@ -33,7 +33,7 @@ __all__ = [
     "submap_scores",
 ]
 
-_CELL_PATCH_PAIRS = 1 << 24  # (cell, patch) distances computed at once when cells are given to patches
+_OWNER_BLOCK = 32  # cells per side of the blocks whose owners are found together
 _SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
 
 
@@ -177,6 +177,37 @@ def _disk(cfg: CoarseSearchConfig) -> torch.Tensor:
     return ((u[:, None] ** 2 + u[None] ** 2) <= r * r).float()
 
 
+def _cell_owners(origin: tuple[float, float], cell_m: float, shape: tuple[int, int], bounds: torch.Tensor
+                 ) -> torch.Tensor:
+    """(H * W,) int64 patch owning each cell: the nearest centre among the patches (`bounds` (P, 4))
+    containing the cell centre, the lowest index on ties, -1 for none. Found block by block among
+    the patches overlapping the block (the others contain none of its cells), so the cost grows
+    with the map's area, not with area x patches."""
+    h, w = shape
+    cy = origin[1] + (torch.arange(h, dtype=torch.float64) + 0.5) * cell_m
+    cx = origin[0] + (torch.arange(w, dtype=torch.float64) + 0.5) * cell_m
+    patch_centres = torch.stack([(bounds[:, 0] + bounds[:, 1]) / 2, (bounds[:, 2] + bounds[:, 3]) / 2], -1)
+    owner = torch.full((h, w), -1, dtype=torch.int64)
+    for r0 in range(0, h, _OWNER_BLOCK):
+        y = cy[r0 : r0 + _OWNER_BLOCK]
+        in_rows = (bounds[:, 2] <= y[-1]) & (bounds[:, 3] >= y[0])
+        for c0 in range(0, w, _OWNER_BLOCK):
+            x = cx[c0 : c0 + _OWNER_BLOCK]
+            candidates = torch.nonzero(in_rows & (bounds[:, 0] <= x[-1]) & (bounds[:, 1] >= x[0])).flatten()
+            if len(candidates) == 0:
+                continue
+            b = bounds[candidates]
+            gy, gx = torch.meshgrid(y, x, indexing="ij")
+            cells = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+            cell_x, cell_y = cells[:, 0:1], cells[:, 1:2]
+            inside = (cell_x >= b[:, 0]) & (cell_x <= b[:, 1]) & (cell_y >= b[:, 2]) & (cell_y <= b[:, 3])
+            dist = torch.cdist(cells, patch_centres[candidates], compute_mode="donot_use_mm_for_euclid_dist")
+            dist = dist.masked_fill(~inside, float("inf"))  # exact distances: ties go to the lowest index
+            best = torch.where(inside.any(1), candidates[dist.argmin(1)], -1)
+            owner[r0 : r0 + len(y), c0 : c0 + len(x)] = best.view(len(y), len(x))
+    return owner.reshape(-1)
+
+
 def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> CoarseMap:
     """Rasterise, blur and transform the aerial map's primitives (P patches, `bounds_xy` (P, 4))."""
     bounds = torch.as_tensor(bounds_xy, dtype=torch.float64)
@@ -194,19 +225,7 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
     grid = _blur(_rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels), cfg.blur_cells)
     side = 2 * _radius_cells(cfg) + 1
     fft_shape = (_fast_size(h + side - 1), _fast_size(w + side - 1))
-    # Cells owned by patches: the nearest centre among the patches containing the cell centre.
-    cy = origin[1] + (torch.arange(h, dtype=torch.float64) + 0.5) * cfg.cell_m
-    cx = origin[0] + (torch.arange(w, dtype=torch.float64) + 0.5) * cfg.cell_m
-    gy, gx = torch.meshgrid(cy, cx, indexing="ij")
-    cell_xy = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
-    patch_centres = torch.stack([(bounds[:, 0] + bounds[:, 1]) / 2, (bounds[:, 2] + bounds[:, 3]) / 2], -1)
-    owner = []
-    for chunk in cell_xy.split(max(1, _CELL_PATCH_PAIRS // len(bounds))):  # memory bound only
-        x, y = chunk[:, 0:1], chunk[:, 1:2]
-        inside = (x >= bounds[:, 0]) & (x <= bounds[:, 1]) & (y >= bounds[:, 2]) & (y <= bounds[:, 3])
-        dist = torch.cdist(chunk, patch_centres).masked_fill(~inside, float("inf"))
-        best = dist.argmin(1)
-        owner.append(torch.where(inside.any(1), best, torch.full_like(best, -1)))
+    cell_patch = _cell_owners(origin, cfg.cell_m, (h, w), bounds)
     # Window energy in float64: it cancels sum(a^2) - sum(a)^2 / n, which float32 FFTs cannot.
     r = _radius_cells(cfg)
     disk = torch.fft.rfft2(_disk(cfg).double(), s=fft_shape)
@@ -222,7 +241,7 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
         fft_shape=fft_shape,
         map_spectrum=torch.fft.rfft2(grid, s=fft_shape),
         window_energy=energy.float(),
-        cell_patch=torch.cat(owner),
+        cell_patch=cell_patch,
         class_centres=centres,
         n_patches=len(bounds),
     )
