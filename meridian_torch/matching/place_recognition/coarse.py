@@ -33,6 +33,7 @@ __all__ = [
     "submap_scores",
 ]
 
+_RASTER_PATCHES = 1024  # patches whose primitives are sampled and rasterised at once
 _OWNER_BLOCK = 32  # cells per side of the blocks whose owners are found together
 _SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
 
@@ -71,10 +72,15 @@ def descriptor_classes(descriptors: torch.Tensor, class_centres: torch.Tensor) -
     return (torch.nn.functional.normalize(descriptors.float(), dim=-1) @ class_centres.T).argmax(-1)
 
 
-def _class_centres(descriptors: torch.Tensor, n_classes: int, seed: int) -> torch.Tensor:
-    """Spherical k-means (farthest-point start from a seeded first centre, fixed iterations)."""
-    x = torch.nn.functional.normalize(descriptors.float(), dim=-1)
-    if n_classes == 1 or len(x) == 0:
+def _class_centres(primitives: PrimitiveBatch, n_classes: int, seed: int) -> torch.Tensor:
+    """Spherical k-means of the valid point and line descriptors (farthest-point start from a
+    seeded first centre, fixed iterations)."""
+    if n_classes == 1:  # no clustering: no copy of every descriptor either
+        return torch.zeros(1, primitives.point_descriptors.shape[-1])
+    x = torch.nn.functional.normalize(torch.cat([
+        primitives.point_descriptors[primitives.point_valid], primitives.line_descriptors[primitives.line_valid]
+    ]).float(), dim=-1)
+    if len(x) == 0:
         return x.new_zeros(1, x.shape[1])
     k = min(n_classes, len(x))
     first = int(torch.randint(len(x), (1,), generator=torch.Generator().manual_seed(seed)))
@@ -211,18 +217,22 @@ def _cell_owners(origin: tuple[float, float], cell_m: float, shape: tuple[int, i
 def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> CoarseMap:
     """Rasterise, blur and transform the aerial map's primitives (P patches, `bounds_xy` (P, 4))."""
     bounds = torch.as_tensor(bounds_xy, dtype=torch.float64)
-    points = primitives.points_xy[primitives.point_valid]
-    point_desc = primitives.point_descriptors[primitives.point_valid]
-    lines = primitives.line_endpoints[primitives.line_valid]
-    line_desc = primitives.line_descriptors[primitives.line_valid]
-    centres = _class_centres(torch.cat([point_desc, line_desc]), cfg.classes, cfg.seed)
+    centres = _class_centres(primitives, cfg.classes, cfg.seed)
     margin = cfg.radius_m
     origin = (float(bounds[:, 0].min()) - margin, float(bounds[:, 2].min()) - margin)
     h = int(math.ceil((float(bounds[:, 3].max()) + margin - origin[1]) / cfg.cell_m))
     w = int(math.ceil((float(bounds[:, 1].max()) + margin - origin[0]) / cfg.cell_m))
-    xy, cls, angle = _primitive_points(points, point_desc, lines, line_desc, centres, cfg.cell_m / 2)
     n_channels = _n_channels(len(centres), cfg)
-    grid = _blur(_rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels), cfg.blur_cells)
+    occupancy = torch.zeros(n_channels, h, w)
+    for first in range(0, len(primitives), _RASTER_PATCHES):  # a union: chunks only bound the samples' memory
+        part = primitives.select(slice(first, first + _RASTER_PATCHES))
+        xy, cls, angle = _primitive_points(
+            part.points_xy[part.point_valid], part.point_descriptors[part.point_valid],
+            part.line_endpoints[part.line_valid], part.line_descriptors[part.line_valid], centres, cfg.cell_m / 2,
+        )
+        torch.maximum(occupancy, _rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels),
+                      out=occupancy)
+    grid = _blur(occupancy, cfg.blur_cells)
     side = 2 * _radius_cells(cfg) + 1
     fft_shape = (_fast_size(h + side - 1), _fast_size(w + side - 1))
     cell_patch = _cell_owners(origin, cfg.cell_m, (h, w), bounds)
