@@ -234,3 +234,16 @@ def test_unreadable_files_say_what_they_are_not(tmp_path: Path, content: str) ->
     message = str(info.value)
     assert message.startswith(f"{path}: not a") and "rebuild the map" in message
     assert "pickle" not in message and "unsafe" not in message
+
+
+def test_an_open_map_survives_the_file_being_replaced(tmp_path: Path) -> None:
+    """Writes replace the file by a rename: a map opened before keeps reading the old file's pages."""
+    path = tmp_path / "m.mtm"
+    original = _map()
+    save_aerial_map(original, path)
+    opened = load_aerial_map(path)
+    other = _map()
+    other.primitives.points_xy.add_(5.0)
+    save_aerial_map(other, path)
+    assert torch.equal(opened.primitives.points_xy, original.primitives.points_xy)
+    assert torch.equal(load_aerial_map(path).primitives.points_xy, other.primitives.points_xy)
