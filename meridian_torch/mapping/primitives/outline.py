@@ -30,8 +30,15 @@ def _grid_downsample(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.
     if size <= 8 * len(points) + 65536:  # a dense table of the bounding box: no sort needed
         counts = np.bincount(key, minlength=size)
         uniq = np.flatnonzero(counts)
-        sums = [np.bincount(key, points[:, k], minlength=size)[uniq] for k in range(2)]
-        means = np.stack(sums, axis=1) / counts[uniq, None]
+        if len(uniq) == len(points):
+            # One point per cell (aerial pixels are coarser than the grid): the mean is the point
+            # itself; + 0.0 turns -0.0 into 0.0 as the summing from 0.0 below does.
+            slot = np.empty(size, dtype=np.int64)
+            slot[key] = np.arange(len(points))
+            means = points[slot[uniq]] + 0.0
+        else:
+            sums = [np.bincount(key, points[:, k], minlength=size)[uniq] for k in range(2)]
+            means = np.stack(sums, axis=1) / counts[uniq, None]
     else:
         uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
         means = np.stack([np.bincount(inverse, points[:, k]) for k in range(2)], axis=1) / counts[:, None]
@@ -98,7 +105,8 @@ def alpha_shape_outline(
         return None
     simplices, neighbors = tri_obj.simplices, tri_obj.neighbors
     tri = pts[simplices]  # (T, 3, 2)
-    side = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=-1)  # (T, 3)
+    step = tri[:, [1, 2, 0]] - tri
+    side = np.sqrt(step[..., 0] ** 2 + step[..., 1] ** 2)  # (T, 3), as np.linalg.norm sums it
     u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     twice_area = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
     # circumradius R = abc / (4 area); written without division to keep slivers (area 0) out
