@@ -245,10 +245,10 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
                 print(f"  {k}/{n} patches, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
             done[0] = k
 
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         with TreePeak() as tree:
             amap = build_aerial_map(ortho, mapper, progress=progress)
-        total = time.perf_counter() - t0
+        total, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     finally:
         aerial_map_module.segments_to_primitives = original
     rss_after = peak_rss_mib()
@@ -263,6 +263,8 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
     print(f"\nbuild_aerial_map: {n_patches} patches in {total:.1f} s = {per_patch:.2f} s/patch "
           f"({torch.get_num_threads()} torch threads); {n_points} points, {n_lines} lines; map arrays "
           f"{map_mib:.1f} MiB ({map_mib * 1024 / n_patches:.0f} KiB per patch)")
+    print(f"CPU time of this process: {cpu:.1f} s = {cpu / n_patches:.3f} s/patch (all its threads; less "
+          f"sensitive than the wall time to other processes on a shared machine)")
     print(f"{'stage':<20} {'seconds':>8} {'share':>6} {'s/patch':>8} {'calls':>6}")
     stages = dict(timer.seconds)
     stages["other"] = total - sum(stages.values())
