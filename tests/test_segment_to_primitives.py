@@ -11,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
+from scipy import ndimage
 from scipy.spatial import Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
@@ -299,6 +300,31 @@ def test_grid_downsample_one_point_per_cell_equals_the_cell_means():
         assert np.array_equal(cells, uniq)
         expected = sums / counts[:, None]
         assert means.tobytes() == expected.tobytes()
+
+
+def test_boundary_band_equals_closing_and_distance_transform():
+    """The erosion band equals its definition: closing, then Euclidean distance to an empty cell <= BAND_CELLS."""
+    rng = np.random.default_rng(9)
+    sizes = set()
+    for trial in range(80):
+        side = int(rng.integers(4, 60))
+        occupied = rng.random((side, side)) < rng.uniform(0.5, 1.0)  # speckle: gaps the closing fills or not
+        yy, xx = np.mgrid[:side, :side]
+        occupied &= (yy - rng.uniform(0, side)) ** 2 + (xx - rng.uniform(0, side)) ** 2 > rng.uniform(0, side) ** 2
+        if trial % 4 == 0:
+            occupied[:, int(rng.integers(0, side))] = False  # an empty column, as 0.3 m pixels leave
+        cells = np.argwhere(occupied) + rng.integers(-1000, 1000, size=2)
+        if len(cells) == 0:
+            continue
+        lo = cells.min(axis=0) - 2
+        grid_cells = np.zeros(tuple(cells.max(axis=0) - lo + 3), dtype=bool)
+        grid_cells[tuple((cells - lo).T)] = True
+        closed = ndimage.binary_closing(grid_cells, structure=np.ones((3, 3), dtype=bool))
+        expected = ndimage.distance_transform_edt(closed)[tuple((cells - lo).T)] <= outline.BAND_CELLS
+        band = outline._boundary_band(cells, outline.BAND_CELLS)
+        sizes.add((bool(expected.all()), bool(expected.any())))
+        assert np.array_equal(band, expected)
+    assert (False, True) in sizes  # some cells deep inside, some in the band
 
 
 def _circumradius(t: np.ndarray) -> float:
