@@ -6,8 +6,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from skimage.segmentation import felzenszwalb, slic
 
 from meridian_torch.core.parallel import thread_map
@@ -66,14 +64,40 @@ class _RegionGraph:
     def merge(self, chosen: np.ndarray) -> np.ndarray:
         """Union the endpoints of the chosen edges; returns the old-to-new region index map."""
         n = self.num_regions
-        e = self.edges[chosen]
-        graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-        m, comp = connected_components(graph, directed=False)
+        m, comp = _connected_labels(self.edges[chosen], n)
         self.count = np.bincount(comp, weights=self.count, minlength=m)
         self.sums = np.stack([np.bincount(comp, weights=self.sums[:, c], minlength=m) for c in range(self.sums.shape[1])], 1)
         # num_regions now reports the merged count, which _set_edges uses to encode pairs.
         self._set_edges(comp[self.edges[:, 0]], comp[self.edges[:, 1]], self.border_len, self.border_step)
         return comp
+
+
+def _connected_labels(pairs: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """Connected components of nodes 0..n-1 joined by `pairs` (E, 2): (count, (n,) labels).
+
+    Labels are numbered in the order of each component's smallest node, as scipy's
+    connected_components numbers them; union by hooking each root under the smallest root it
+    meets, then pointer jumping, in array steps (cheaper than a sparse matrix for a few hundred
+    regions).
+    """
+    root = np.arange(n)
+    a, b = pairs[:, 0], pairs[:, 1]
+    while True:
+        ra, rb = root[a], root[b]
+        apart = ra != rb
+        if not apart.any():
+            break
+        ra, rb = ra[apart], rb[apart]
+        np.minimum.at(root, np.maximum(ra, rb), np.minimum(ra, rb))
+        while True:  # point every node at its root; roots only ever point at smaller nodes
+            up = root[root]
+            if np.array_equal(up, root):
+                break
+            root = up
+    # Each component's root is its smallest node (nothing points upwards), so roots in
+    # increasing order number the components as scipy does.
+    is_root = root == np.arange(n)
+    return int(is_root.sum()), (np.cumsum(is_root) - 1)[root]
 
 
 def _best_edge_per_region(edges: np.ndarray, weight: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +213,7 @@ class ClassicalSegmenter:
         labels, scores = self._segment_working(work, min_px)
         full = cv2.resize(labels.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST).astype(np.int64)
         # Nearest upsampling can drop a one-pixel region entirely; renumber to keep labels dense.
-        present = np.unique(full)
+        present = np.flatnonzero(np.bincount(full.ravel(), minlength=len(scores)))  # np.unique without a sort
         if len(present) < len(scores):
             remap = np.zeros(len(scores), dtype=np.int64)
             remap[present] = np.arange(len(present))
