@@ -186,7 +186,10 @@ class ClassicalSegmenter:
         counts = [len(s) for s in scores]
         m = max(counts)
         label_t = torch.from_numpy(np.stack(labels)).to(images.device)
-        masks = label_t[:, None] == torch.arange(m, device=images.device)[None, :, None, None]
+        # One-hot masks by scattering each pixel's label: a fraction of the cost of comparing
+        # every pixel with every label.
+        masks = torch.zeros(bsz, m, h, w, dtype=torch.bool, device=images.device)
+        masks.view(bsz, m, h * w).scatter_(1, label_t.view(bsz, 1, h * w), True)
         valid = torch.arange(m, device=images.device)[None, :] < torch.tensor(counts, device=images.device)[:, None]
         score_t = torch.zeros(bsz, m, dtype=images.dtype, device=images.device)
         for i, s in enumerate(scores):
