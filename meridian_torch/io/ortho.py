@@ -259,6 +259,19 @@ def stretch_to_uint8(band: np.ndarray, limits: tuple[float, float] | None) -> np
     return np.round(np.clip(np.nan_to_num(scaled), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def geotiff_layout(
+    ds: DatasetReader, path: Path
+) -> tuple[tuple[float, tuple[float, float], str | None], list[int]]:
+    """(georeference, RGB band indexes) of an open GeoTIFF; its first problem raises OrthophotoError."""
+    problems: list[str] = []
+    georef = geotiff_georeference(ds, path, problems)
+    bands = geotiff_bands(ds, path, problems)
+    if problems:
+        raise OrthophotoError(problems[0])
+    assert georef is not None and bands is not None
+    return georef, bands
+
+
 def read_geotiff_bands(
     ds: DatasetReader, bands: list[int], window: Window | None = None
 ) -> tuple[dict[int, np.ndarray], np.ndarray]:
@@ -300,13 +313,8 @@ def open_geotiff(path: Path) -> DatasetReader:
 
 
 def _read_geotiff(path: Path) -> Orthophoto:
-    problems: list[str] = []
     with open_geotiff(path) as ds:
-        georef = geotiff_georeference(ds, path, problems)
-        bands = geotiff_bands(ds, path, problems)
-        if problems:
-            raise OrthophotoError(problems[0])
-        assert georef is not None and bands is not None
+        georef, bands = geotiff_layout(ds, path)
         data, valid = read_geotiff_bands(ds, bands)
     limits = {b: stretch_limits(v, valid) for b, v in data.items() if v.dtype != np.uint8}
     mpp, origin, crs = georef

@@ -32,8 +32,7 @@ from meridian_torch.io.ortho import (
     decode_rgb8,
     find_orthophoto,
     georeference_path,
-    geotiff_bands,
-    geotiff_georeference,
+    geotiff_layout,
     geotiff_rgb,
     open_geotiff,
     parse_georeference,
@@ -132,11 +131,7 @@ def open_orthophoto(path: str | os.PathLike[str]) -> OrthophotoSource:
     problems: list[str] = []
     if suffix in GEOTIFF_SUFFIXES:
         with open_geotiff(image_path) as ds:
-            georef = geotiff_georeference(ds, image_path, problems)
-            bands = geotiff_bands(ds, image_path, problems)
-            if problems:
-                raise OrthophotoError(problems[0])
-            assert georef is not None and bands is not None
+            georef, bands = geotiff_layout(ds, image_path)
             size = (ds.width, ds.height)
             stretch: dict[int, tuple[float, float] | None] = {}
             if any(np.dtype(ds.dtypes[b - 1]) != np.uint8 for b in bands):  # limits need the whole bands
