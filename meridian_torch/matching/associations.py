@@ -100,13 +100,10 @@ def _type_pairs(
     direction: Direction,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`_chunk_pairs` over chunks of patches, padded to the widest chunk (same result, bounded memory)."""
-    per_patch = max(1, ground_ok.shape[0] * aerial_ok.shape[1])
-    step = max(1, _SIMILARITY_ELEMENTS // per_patch)
-    if aerial_ok.shape[0] <= step:
-        return _chunk_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
+    step = max(1, _SIMILARITY_ELEMENTS // max(1, ground_ok.shape[0] * aerial_ok.shape[1]))
     chunks = [
         _chunk_pairs(ground_desc, ground_ok, aerial_desc[p : p + step], aerial_ok[p : p + step], k, direction)
-        for p in range(0, aerial_ok.shape[0], step)
+        for p in range(0, max(aerial_ok.shape[0], 1), step)  # one (empty) chunk without patches
     ]
     width = max(c[0].shape[1] for c in chunks)
 
