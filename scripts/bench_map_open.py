@@ -10,7 +10,7 @@ package's current map format, then opened in a fresh process each, which reports
 Memory is /proc/self/status after each step: RssAnon (the process's own memory), RssFile (mapped
 file pages, clean: the kernel can drop them) and VmHWM (peak resident set).
 
-    python scripts/bench_map_open.py --map runs/kitti09-7hz/aerial.mtm --sides 1 4 7 --out /tmp/maps
+    python scripts/bench_map_open.py --map runs/kitti09-7hz/aerial.mtm --sides 1 4 7 --out maps-bench
 """
 
 from __future__ import annotations
@@ -102,7 +102,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--map", type=Path, help="the map whose patches are tiled")
     parser.add_argument("--sides", type=int, nargs="+", default=[1, 4, 7], help="copies per side of each map")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/bench_map_open"))
+    parser.add_argument("--out", type=Path, default=Path.home() / ".cache" / "meridian-torch" / "bench_map_open",
+                        help="folder for the tiled maps (default: ~/.cache/meridian-torch/bench_map_open)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--coarse", action="store_true", help="also build the coarse-search map (slow on large maps)")
     parser.add_argument("--measure", type=Path, help="measure this map file only (in this process)")

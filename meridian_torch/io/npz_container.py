@@ -14,6 +14,7 @@ import hashlib
 import json
 import struct
 import zipfile
+from io import BytesIO
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
@@ -92,8 +93,6 @@ def _write_stored(fh: IO[bytes], arrays: dict[str, np.ndarray]) -> None:
 
 
 def _npy_header(array: np.ndarray) -> bytes:
-    from io import BytesIO
-
     buffer = BytesIO()
     np.lib.format.write_array_header_1_0(buffer, np.lib.format.header_data_from_array_1_0(array))
     return buffer.getvalue()
