@@ -14,7 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from meridian_torch.evaluation.trajectory_metrics import trajectory_errors
+from meridian_torch.evaluation.trajectory_metrics import (
+    CONSISTENT_NEES,
+    CONSISTENT_POSITION_NEES,
+    CONSISTENT_WITHIN_2SIGMA,
+    trajectory_errors,
+)
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import save_figure_atomic, write_text_atomic
 from meridian_torch.io.ortho import Orthophoto
@@ -167,8 +172,18 @@ def write_report(
                 f"- time / distance to the first fix: {_fmt(metrics.get('time_to_first_fix_s'))} s / "
                 f"{_fmt(metrics.get('distance_to_first_fix_m'))} m"
             ),
-            "",
         ]
+        consistency = metrics.get("final_covariance_consistency")
+        if consistency is not None:
+            within = consistency["position_within_2sigma"]
+            lines.append(
+                f"- final covariance consistency over {consistency['n']} poses: mean NEES "
+                f"{_fmt(consistency['nees_mean'])}, position NEES {_fmt(consistency['position_nees_mean'])}, "
+                f"{'-' if within is None else f'{100 * within:.1f} %'} of positions inside the 2-sigma ellipse "
+                f"(consistent: {CONSISTENT_NEES:g}, {CONSISTENT_POSITION_NEES:g}, "
+                f"{100 * CONSISTENT_WITHIN_2SIGMA:.1f} %; larger NEES, smaller fraction: overconfident)"
+            )
+        lines.append("")
         for mode, by_threshold in (metrics.get("registration_success") or {}).items():
             for threshold, values in by_threshold.items():
                 ranks = ", ".join(f"{k} {_fmt(v)}" for k, v in values.items())

@@ -5,6 +5,10 @@
   Computed for the final trajectory and for the incremental (online) one over its frames.
 - fraction of frames localized (frames with an online estimate / all frames), distance (ground
   truth path length) and time from the first frame to the first online estimate.
+- covariance consistency of the final trajectory (`covariance.csv`, world axes): mean NEES
+  e^T S^-1 e of e = (dx, dy, wrap(dyaw)) over the poses (a consistent estimator gives 3), of the
+  position alone (2), and the fraction of position errors inside the 2-sigma ellipse (1 - e^-2 =
+  86.5 %). The errors are the unaligned world-frame ones, as the covariance is in world axes.
 - registration success top-k: per submap, its hypotheses ranked by probability (over all patches it
   was matched against); success@k if any of the first k lies within the translation and rotation
   thresholds of the ground-truth T_world_base at the submap time (strict <).
@@ -12,7 +16,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,17 +26,23 @@ from typing import Any
 import numpy as np
 
 from meridian_torch.config import EvaluationConfig
+from meridian_torch.errors import SequenceFormatError
 from meridian_torch.geometry.planar import scalar_yaw_of, wrap_angle
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
-from meridian_torch.io.results import METRICS_JSON, RunOutputs, read_outputs
+from meridian_torch.io.results import COVARIANCE_CSV, METRICS_JSON, RunOutputs, read_outputs
 
 __all__ = [
+    "CONSISTENT_NEES",
+    "CONSISTENT_POSITION_NEES",
+    "CONSISTENT_WITHIN_2SIGMA",
     "METRICS_JSON",
     "TrajectoryErrors",
     "associate",
+    "covariance_consistency",
     "evaluate_run",
     "localization_metrics",
+    "read_covariances",
     "registration_success",
     "trajectory_errors",
 ]
@@ -84,16 +96,88 @@ class TrajectoryErrors:
         }
 
 
-def trajectory_errors(est: Trajectory, gt: Trajectory, max_difference_s: float = 0.01) -> TrajectoryErrors:
-    """Per-pose errors of `est` against `gt` at the same timestamps (unaligned, 2D)."""
+def _world_errors(
+    est: Trajectory, gt: Trajectory, max_difference_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(i_est, i_gt, (M, 3) signed errors (dx, dy, wrap(dyaw)) in world axes, unaligned)."""
     i, j = associate(est.timestamps, gt.timestamps, max_difference_s)
     dxy = est.positions[i, :2] - gt.positions[j, :2]
+    return i, j, np.c_[dxy, wrap_angle(est.yaws[i] - gt.yaws[j])]
+
+
+def trajectory_errors(est: Trajectory, gt: Trajectory, max_difference_s: float = 0.01) -> TrajectoryErrors:
+    """Per-pose errors of `est` against `gt` at the same timestamps (unaligned, 2D)."""
+    i, j, e = _world_errors(est, gt, max_difference_s)
     return TrajectoryErrors(
         times=est.timestamps[i],
-        translation_m=np.linalg.norm(dxy, axis=1),
-        heading_rad=np.abs(wrap_angle(est.yaws[i] - gt.yaws[j])),
+        translation_m=np.linalg.norm(e[:, :2], axis=1),
+        heading_rad=np.abs(e[:, 2]),
         distance_m=gt.path_lengths()[j],
     )
+
+
+CONSISTENT_NEES = 3.0  # E[e^T S^-1 e] for e ~ N(0, S) in 3 dimensions
+CONSISTENT_POSITION_NEES = 2.0
+CONSISTENT_WITHIN_2SIGMA = 1.0 - math.exp(-2.0)  # P(chi2 with 2 dof <= 2^2)
+
+
+def covariance_consistency(
+    est: Trajectory, covariance_xy_yaw: np.ndarray, gt: Trajectory, max_difference_s: float = 0.01
+) -> dict[str, float | int | None]:
+    """How well the per-pose covariances (N, 3, 3) of (x, y, yaw), world axes, of `est` describe its
+    errors against `gt`: mean NEES (3 DoF, consistent: `CONSISTENT_NEES`), mean position NEES (x, y;
+    `CONSISTENT_POSITION_NEES`) and the fraction of positions within Mahalanobis distance 2
+    (`CONSISTENT_WITHIN_2SIGMA`), over `n` poses. Poses without ground truth within
+    `max_difference_s` and poses whose covariance is non-finite or not positive definite are
+    skipped and counted (`n_without_groundtruth`, `n_invalid_covariance`)."""
+    cov = np.asarray(covariance_xy_yaw, dtype=np.float64)
+    if cov.shape != (len(est), 3, 3):
+        raise ValueError(f"covariance_xy_yaw: shape {cov.shape}, expected ({len(est)}, 3, 3) (one per pose)")
+    i, _, e = _world_errors(est, gt, max_difference_s)
+    cov = cov[i]
+    valid = np.isfinite(cov).all(axis=(1, 2))
+    sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    eig = np.zeros((len(cov), 3))
+    eig[valid] = np.linalg.eigvalsh(sym[valid])
+    # numerically singular as in numpy's matrix_rank: smallest eigenvalue within 3 eps of the largest
+    valid &= eig[:, 0] > 3 * np.finfo(np.float64).eps * np.abs(eig[:, 2])
+    counts = {
+        "n": int(valid.sum()),
+        "n_without_groundtruth": len(est) - len(i),
+        "n_invalid_covariance": int((~valid).sum()),
+    }
+    if not valid.any():
+        return counts | {"nees_mean": None, "position_nees_mean": None, "position_within_2sigma": None}
+    e, sym = e[valid], sym[valid]
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(sym, e[:, :, None])[:, :, 0])
+    position_nees = np.einsum("ni,ni->n", e[:, :2], np.linalg.solve(sym[:, :2, :2], e[:, :2, None])[:, :, 0])
+    return counts | {
+        "nees_mean": float(nees.mean()),
+        "position_nees_mean": float(position_nees.mean()),
+        "position_within_2sigma": float(np.mean(position_nees <= 4.0)),
+    }
+
+
+_COVARIANCE_COLUMNS = ["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"]
+
+
+def read_covariances(path: str | Path, est: Trajectory) -> np.ndarray:
+    """(N, 3, 3) covariances of `est`'s poses from a `covariance.csv` (io.results), one row per pose."""
+    path = Path(path)
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or rows[0] != _COVARIANCE_COLUMNS:
+        raise SequenceFormatError(f"{path}: header {rows[:1]}, expected {_COVARIANCE_COLUMNS}")
+    try:
+        values = np.array([[float(v) for v in r] for r in rows[1:]], dtype=np.float64).reshape(-1, 7)
+    except ValueError as exc:
+        raise SequenceFormatError(f"{path}: a row is not 7 numbers ({exc})") from exc
+    if len(values) != len(est) or not np.allclose(values[:, 0], est.timestamps, rtol=0, atol=1e-6):
+        raise SequenceFormatError(
+            f"{path}: {len(values)} rows whose timestamps do not match the {len(est)} poses of the trajectory"
+        )
+    xx, xy, xyaw, yy, yyaw, yawyaw = values[:, 1:].T
+    return np.stack([np.c_[xx, xy, xyaw], np.c_[xy, yy, yyaw], np.c_[xyaw, yyaw, yawyaw]], axis=1)
 
 
 def registration_success(
@@ -146,8 +230,11 @@ def _gt_distance(gt: Trajectory, t0: float, t1: float) -> float | None:
     return float(Trajectory(times, gt.interpolate(times)).path_lengths()[-1])
 
 
-def localization_metrics(run: RunOutputs, gt: Trajectory, cfg: EvaluationConfig) -> dict[str, Any]:
-    """Every metric of one run's outputs against the ground truth (T_world_base)."""
+def localization_metrics(
+    run: RunOutputs, gt: Trajectory, cfg: EvaluationConfig, final_covariance_xy_yaw: np.ndarray | None = None
+) -> dict[str, Any]:
+    """Every metric of one run's outputs against the ground truth (T_world_base); with the final
+    trajectory's (N, 3, 3) covariances also their consistency (`covariance_consistency`)."""
     s = run.summary
     metrics: dict[str, Any] = {
         "localized": bool(s["localized"]),
@@ -157,6 +244,11 @@ def localization_metrics(run: RunOutputs, gt: Trajectory, cfg: EvaluationConfig)
     }
     metrics["final"] = (
         trajectory_errors(run.final, gt, cfg.max_time_difference_s).summary() if run.final else None
+    )
+    metrics["final_covariance_consistency"] = (
+        covariance_consistency(run.final, final_covariance_xy_yaw, gt, cfg.max_time_difference_s)
+        if run.final is not None and final_covariance_xy_yaw is not None
+        else None
     )
     inc = run.incremental
     metrics["incremental"] = trajectory_errors(inc, gt, cfg.max_time_difference_s).summary() if inc else None
@@ -200,6 +292,9 @@ def evaluate_run(
 ) -> dict[str, Any]:
     """Metrics of the run in `out_dir` against `groundtruth`; also written to `out_dir/metrics.json`."""
     cfg = cfg or EvaluationConfig()
-    metrics = localization_metrics(read_outputs(out_dir), groundtruth, cfg)
+    run = read_outputs(out_dir)
+    cov_path = Path(out_dir) / COVARIANCE_CSV
+    cov = read_covariances(cov_path, run.final) if run.final is not None and cov_path.is_file() else None
+    metrics = localization_metrics(run, groundtruth, cfg, cov)
     write_text_atomic(Path(out_dir) / METRICS_JSON, json.dumps(metrics, indent=2) + "\n")
     return metrics
