@@ -13,7 +13,12 @@ from hypothesis import strategies as st
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import select_inliers
-from meridian_torch.backend.pose_graph import align_odometry, optimize_pose_graph, propagate_covariance
+from meridian_torch.backend.pose_graph import (
+    IncrementalPoseGraph,
+    align_odometry,
+    optimize_pose_graph,
+    propagate_covariance,
+)
 from meridian_torch.config import BackendConfig
 
 
@@ -114,6 +119,38 @@ def test_corrupted_loop_closure_is_rejected() -> None:
     err_good = np.linalg.norm(good.T_world_base[:, :2, 2] - truth[:, :2, 2], axis=1).max()
     err_bad = np.linalg.norm(bad.T_world_base[:, :2, 2] - truth[:, :2, 2], axis=1).max()
     assert err_good < 0.6 and err_bad > 2 * err_good
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**16), drift_deg=st.floats(-0.05, 0.05), drop_every=st.integers(2, 6))
+def test_incremental_graph_follows_the_batch_solution(seed: int, drift_deg: float, drop_every: int) -> None:
+    """The online graph, grown frame batch by frame batch with priors added and withdrawn, ends
+    every update where the batch solve of the same factors ends (last pose and its covariance)."""
+    rng = np.random.default_rng(seed)
+    truth, odom = path(n=300, drift_deg=drift_deg)
+    nodes = np.arange(7, 300, 23)
+    meas = truth[nodes] @ se2(rng.normal(0, 1.5, len(nodes)), rng.normal(0, 1.5, len(nodes)),
+                              rng.normal(0, 0.06, len(nodes)))
+    cfg = BackendConfig()
+    graph = IncrementalPoseGraph(cfg)
+    for j in range(2, len(nodes)):
+        n = min(int(nodes[j]) + 1 + int(rng.integers(0, 10)), len(odom))
+        given_ = np.arange(j + 1)
+        given_ = given_[(given_ % drop_every != j % drop_every) | (given_ == j)]  # some earlier priors withdrawn
+        T_last, cov = graph.update(odom[:n], nodes[given_], meas[given_], covariance=True)
+        batch = optimize_pose_graph(odom[:n], nodes[given_], meas[given_], cfg, covariance="last")
+        assert graph.n_nodes == n
+        assert np.linalg.norm(T_last[:2, 2] - batch.T_world_base[-1, :2, 2]) < 0.01
+        assert abs(math.atan2(T_last[1, 0], T_last[0, 0]) - math.atan2(*batch.T_world_base[-1, 1::-1, 0])) < 1e-3
+        assert np.abs(cov - batch.covariance[0]).max() < 1e-2 * np.abs(batch.covariance[0]).max()
+
+
+def test_incremental_graph_refuses_to_drop_frames() -> None:
+    truth, odom = path(50)
+    graph = IncrementalPoseGraph(BackendConfig())
+    graph.update(odom[:40], np.array([10]), truth[10:11])
+    with pytest.raises(ValueError, match="cannot drop frames"):
+        graph.update(odom[:30], np.array([10]), truth[10:11])
 
 
 def test_bad_inputs() -> None:

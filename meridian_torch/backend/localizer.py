@@ -14,8 +14,10 @@ States, per new ground submap:
   pool; CLIPPER + pose graph; accepted inliers are committed (the other candidates of their
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
 
-The online estimate at a frame = the anchor (last optimized pose of the latest update available
-at that frame's time) carried forward by odometry. `finalize` solves the final pool once more over
+The online pose graph lives in iSAM2 from the fix on (`IncrementalPoseGraph`: each update adds
+the new frames and the changed loop closures). The online estimate at a frame = the anchor (last
+optimized pose of the latest update available at that frame's time) carried forward by odometry.
+`finalize` solves the final pool once more over
 every frame and, with `final_rematch`, re-matches every submap with the rotation prior near that
 trajectory (offline pass 2), keeping pass 2 when it passes the fix gate.
 
@@ -39,7 +41,12 @@ import torch
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
 from meridian_torch.backend.frames import FrameBuffer, OnlineUpdate, lift_se2
-from meridian_torch.backend.pose_graph import PoseGraphSolution, optimize_pose_graph, propagate_covariance
+from meridian_torch.backend.pose_graph import (
+    IncrementalPoseGraph,
+    PoseGraphSolution,
+    optimize_pose_graph,
+    propagate_covariance,
+)
 from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher, StageSeconds
 from meridian_torch.backend.sanity import sanity_problems
 from meridian_torch.backend.submap_matching import SubmapMatching
@@ -122,6 +129,7 @@ class Localizer:
         )
         self.state: Literal["pre", "post"] = "pre"
         self._updates: list[OnlineUpdate] = []
+        self._online_graph = IncrementalPoseGraph(cfg.backend)  # started at the fix
         self.fix_submap_index: int | None = None
         self.fix_time: float | None = None
         self.events: list[LocalizerEvent] = []
@@ -220,14 +228,18 @@ class Localizer:
         return nodes, T_world_odom @ self._odom_se2[nodes]
 
     def _anchor(self, inliers: LoopClosureCandidates, n_nodes: int, available_time: float) -> None:
-        """Optimize the graph up to frame n_nodes - 1 on these inliers; its last pose anchors the
-        online estimate from `available_time` on."""
-        sol = self._optimize(inliers, n_nodes, covariance="last" if self.online_covariance else False)
-        last = len(sol.T_world_base) - 1
-        cov = None if sol.covariance is None else sol.covariance[-1]
-        self._updates.append(
-            OnlineUpdate(available_time, sol.T_world_base[last] @ np.linalg.inv(self._odom_se2[last]), last, cov)
-        )
+        """Update the online pose graph (iSAM2) to frame n_nodes - 1 and these inliers; its last
+        pose anchors the online estimate from `available_time` on."""
+        start = time.perf_counter()
+        nodes, priors = self._prior_poses(inliers)
+        n_nodes = max(n_nodes, self._online_graph.n_nodes)
+        with stage("pose graph"):
+            T_world_base, cov = self._online_graph.update(
+                self._odom_se2[:n_nodes], nodes, priors, covariance=self.online_covariance
+            )
+        self._timer.add("pose_graph", start)
+        last = n_nodes - 1
+        self._updates.append(OnlineUpdate(available_time, T_world_base @ np.linalg.inv(self._odom_se2[last]), last, cov))
 
     def _keep(self, keep: torch.Tensor) -> None:
         """Keep the pool's candidates `keep` (N,) bool, and the known edges between them."""

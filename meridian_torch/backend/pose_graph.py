@@ -4,7 +4,9 @@ One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between co
 frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time
 to its submap. Plain Gaussian noise (CLIPPER removed the outliers already), Levenberg-Marquardt
 with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
-Poses in and out are numpy float64 (..., 3, 3) SE(2) matrices.
+`IncrementalPoseGraph` keeps the same graph online in iSAM2: each update adds the new frames'
+odometry factors and the loop closures that changed, instead of rebuilding and re-solving the
+whole drive. Poses in and out are numpy float64 (..., 3, 3) SE(2) matrices.
 """
 
 from __future__ import annotations
@@ -18,7 +20,13 @@ import numpy as np
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.planar import se2_from_xy_yaw, yaw_of
 
-__all__ = ["PoseGraphSolution", "align_odometry", "optimize_pose_graph", "propagate_covariance"]
+__all__ = [
+    "IncrementalPoseGraph",
+    "PoseGraphSolution",
+    "align_odometry",
+    "optimize_pose_graph",
+    "propagate_covariance",
+]
 
 
 def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
@@ -60,35 +68,18 @@ def optimize_pose_graph(
     """
     import gtsam
 
-    T_odom_base = np.asarray(T_odom_base, dtype=np.float64)
-    prior_nodes = np.asarray(prior_nodes, dtype=np.int64)
-    T_world_base_priors = np.asarray(T_world_base_priors, dtype=np.float64)
+    T_odom_base, prior_nodes, T_world_base_priors = _checked(T_odom_base, prior_nodes, T_world_base_priors)
     n = len(T_odom_base)
-    if len(prior_nodes) == 0 or n == 0:
-        raise ValueError("optimize_pose_graph needs at least one node and one loop-closure prior")
-    if prior_nodes.min() < 0 or prior_nodes.max() >= n:
-        raise ValueError(f"prior nodes must lie in [0, {n}), got {prior_nodes.min()}..{prior_nodes.max()}")
-
-    def pose(T: np.ndarray) -> gtsam.Pose2:
-        return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(yaw_of(T)))
-
+    odom_noise, prior_noise = _noise_models(cfg)
     graph = gtsam.NonlinearFactorGraph()
-    odom_noise = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([cfg.odom_trans_sigma_m, cfg.odom_trans_sigma_m, math.radians(cfg.odom_rot_sigma_deg)])
-    )
-    prior_noise = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
-    )
-    steps = np.linalg.inv(T_odom_base[:-1]) @ T_odom_base[1:]
-    for k, step in enumerate(steps):
-        graph.add(gtsam.BetweenFactorPose2(k, k + 1, pose(step), odom_noise))
+    _add_odometry(graph, T_odom_base, 0, odom_noise)
     for node, T in zip(prior_nodes, T_world_base_priors):
-        graph.add(gtsam.PriorFactorPose2(int(node), pose(T), prior_noise))
+        graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
 
     T_world_odom = align_odometry(T_world_base_priors, T_odom_base[prior_nodes])
     initial = gtsam.Values()
     for k, T in enumerate(T_world_odom @ T_odom_base):
-        initial.insert(k, pose(T))
+        initial.insert(k, _pose2(T))
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams())
     result = optimizer.optimize()
     xyt = np.array([[p.x(), p.y(), p.theta()] for p in (result.atPose2(k) for k in range(n))])
@@ -96,10 +87,7 @@ def optimize_pose_graph(
     if covariance:
         marginals = gtsam.Marginals(graph, result)
         nodes = np.arange(n - 1, n) if covariance == "last" else np.arange(n)
-        local = np.stack([marginals.marginalCovariance(int(k)) for k in nodes])
-        rot = se2_from_xy_yaw(0.0, 0.0, xyt[nodes, 2])  # body tangent (x, y, theta) -> world-aligned axes
-        rot[:, 2, 2] = 1.0
-        cov = rot @ local @ np.swapaxes(rot, 1, 2)
+        cov = _world_axes(np.stack([marginals.marginalCovariance(int(k)) for k in nodes]), xyt[nodes, 2])
     return PoseGraphSolution(
         T_world_base=se2_from_xy_yaw(xyt[:, 0], xyt[:, 1], xyt[:, 2]),
         covariance=cov,
@@ -107,6 +95,150 @@ def optimize_pose_graph(
         final_error=float(graph.error(result)),
         iterations=int(optimizer.iterations()),
     )
+
+
+class IncrementalPoseGraph:
+    """The online pose graph in iSAM2: the same factors as `optimize_pose_graph`, updated in place.
+
+    The first `update` solves the graph in batch (Levenberg-Marquardt, as `optimize_pose_graph`)
+    and hands that solution to iSAM2. Later updates add the odometry factors of the frames that
+    arrived since, add the loop-closure priors that are new and remove those no longer given (a
+    prior is identified by its node and measured pose, bit for bit), then let iSAM2 relinearize
+    until the estimate settles. The cost of an update depends on what changed, not on the length
+    of the drive.
+    """
+
+    _MAX_SETTLE_STEPS = 5  # extra iSAM2 steps after an update, while they still relinearize something
+
+    def __init__(self, cfg: BackendConfig) -> None:
+        self.cfg = cfg
+        self._isam = None
+        self._n = 0
+        self._priors: dict[tuple[int, bytes], int] = {}  # (node, measured pose bytes) -> factor index
+
+    @property
+    def n_nodes(self) -> int:
+        return self._n
+
+    def update(
+        self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray, *, covariance: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Bring the graph to the frames T_odom_base (N, 3, 3) (the first n_nodes unchanged, N >=
+        n_nodes) and exactly the priors given; returns the last node's optimized pose (3, 3) and,
+        with `covariance`, its marginal covariance of (x, y, yaw) in world axes (3, 3)."""
+        import gtsam
+
+        T_odom_base, prior_nodes, T_world_base_priors = _checked(T_odom_base, prior_nodes, T_world_base_priors)
+        n = len(T_odom_base)
+        if n < self._n:
+            raise ValueError(f"the pose graph has {self._n} nodes; an update cannot drop frames (got {n})")
+        keys = [(int(k), np.ascontiguousarray(T).tobytes()) for k, T in zip(prior_nodes, T_world_base_priors)]
+        if self._isam is None:
+            self._start(T_odom_base, prior_nodes, T_world_base_priors, keys)
+        else:
+            odom_noise, prior_noise = _noise_models(self.cfg)
+            factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            if n > self._n:  # new frames start where the odometry carries the last estimate
+                T_world_odom = self._pose(self._n - 1) @ np.linalg.inv(T_odom_base[self._n - 1])
+                _add_odometry(factors, T_odom_base[self._n - 1 :], self._n - 1, odom_noise)
+                for k in range(self._n, n):
+                    values.insert(k, _pose2(T_world_odom @ T_odom_base[k]))
+            wanted = dict(zip(keys, T_world_base_priors))
+            added = [key for key in wanted if key not in self._priors]
+            for key in added:
+                factors.add(gtsam.PriorFactorPose2(key[0], _pose2(wanted[key]), prior_noise))
+            removed = [key for key in self._priors if key not in wanted]
+            result = self._isam.update(factors, values, [self._priors.pop(key) for key in removed])
+            first_prior = factors.size() - len(added)
+            indices = result.getNewFactorsIndices()
+            for i, key in enumerate(added):
+                self._priors[key] = int(indices[first_prior + i])
+            self._settle(result)
+        self._n = n
+        cov = None
+        if covariance:
+            cov = _world_axes(self._isam.marginalCovariance(n - 1)[None], np.array([yaw_of(self._pose(n - 1))]))[0]
+        return self._pose(n - 1), cov
+
+    def _start(self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
+               keys: list[tuple[int, bytes]]) -> None:
+        import gtsam
+
+        sol = optimize_pose_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg)
+        odom_noise, prior_noise = _noise_models(self.cfg)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        _add_odometry(graph, T_odom_base, 0, odom_noise)
+        first_prior = graph.size()
+        for node, T in zip(prior_nodes, T_world_base_priors):
+            graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
+        for k, T in enumerate(sol.T_world_base):
+            values.insert(k, _pose2(T))
+        params = gtsam.ISAM2Params()
+        params.relinearizeSkip = 1  # relinearize what moved at every step (a few variables per update)
+        params.enablePartialRelinearizationCheck = True  # check only the cliques an update touched: O(change), not O(drive)
+        self._isam = gtsam.ISAM2(params)
+        result = self._isam.update(graph, values)
+        indices = result.getNewFactorsIndices()
+        self._priors = {key: int(indices[first_prior + i]) for i, key in enumerate(keys)}
+
+    def _settle(self, result) -> None:
+        for _ in range(self._MAX_SETTLE_STEPS):
+            if result.getVariablesRelinearized() == 0:
+                return
+            result = self._isam.update()
+
+    def _pose(self, k: int) -> np.ndarray:
+        p = self._isam.calculateEstimatePose2(k)
+        return se2_from_xy_yaw(p.x(), p.y(), np.array(p.theta()))
+
+
+def _checked(
+    T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    T_odom_base = np.asarray(T_odom_base, dtype=np.float64)
+    prior_nodes = np.asarray(prior_nodes, dtype=np.int64)
+    T_world_base_priors = np.asarray(T_world_base_priors, dtype=np.float64)
+    n = len(T_odom_base)
+    if len(prior_nodes) == 0 or n == 0:
+        raise ValueError("the pose graph needs at least one node and one loop-closure prior")
+    if prior_nodes.min() < 0 or prior_nodes.max() >= n:
+        raise ValueError(f"prior nodes must lie in [0, {n}), got {prior_nodes.min()}..{prior_nodes.max()}")
+    return T_odom_base, prior_nodes, T_world_base_priors
+
+
+def _pose2(T: np.ndarray):
+    import gtsam
+
+    return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(yaw_of(T)))
+
+
+def _noise_models(cfg: BackendConfig):
+    """(odometry step noise, loop-closure prior noise) as GTSAM diagonal models."""
+    import gtsam
+
+    odom = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([cfg.odom_trans_sigma_m, cfg.odom_trans_sigma_m, math.radians(cfg.odom_rot_sigma_deg)])
+    )
+    prior = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
+    )
+    return odom, prior
+
+
+def _add_odometry(graph, T_odom_base: np.ndarray, first_node: int, noise) -> None:
+    """Between-factors for the steps of T_odom_base (K, 3, 3), whose first pose is node `first_node`."""
+    import gtsam
+
+    steps = np.linalg.inv(T_odom_base[:-1]) @ T_odom_base[1:]
+    for k, step in enumerate(steps, start=first_node):
+        graph.add(gtsam.BetweenFactorPose2(k, k + 1, _pose2(step), noise))
+
+
+def _world_axes(local: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Covariances (K, 3, 3) in GTSAM's body tangent space (x, y, theta) -> world-aligned axes."""
+    rot = se2_from_xy_yaw(0.0, 0.0, yaw)
+    rot[:, 2, 2] = 1.0
+    return rot @ local @ np.swapaxes(rot, 1, 2)
 
 
 def propagate_covariance(covariance: np.ndarray, T_world_base: np.ndarray, cfg: BackendConfig) -> np.ndarray:
