@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from meridian_torch.config import GroundMapConfig, GroundTrackingConfig
-from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
 from meridian_torch.mapping.ground_observations import voxel_hash
 from meridian_torch.mapping.ground_submaps import (
     SubmapGeometry,
@@ -90,6 +90,26 @@ def test_gates_skip_and_clear_and_path_trigger():
     assert trigger.select(tracker, 140.0) is None  # one new id, 40 m travelled
     assert [s.id for s in trigger.select(tracker, 150.0)][:1] == [6]  # 50 m: the path trigger
     assert trigger.select(tracker, 150.0, force=True) is not None
+
+
+def test_spacing_after_fix_replaces_the_gates_and_the_path_trigger():
+    cfg = GroundMapConfig(submap_trigger_new_segments=3, submap_min_path_m=20.0, submap_min_interval_s=5.0,
+                          submap_trigger_path_m=50.0)
+    trigger = SubmapTrigger(cfg)
+    tracker = _FakeTracker()
+    tracker.add(_tiny_segment(0))
+    trigger.observe(tracker)
+    trigger.commit(trigger.select(tracker, 100.0, force=True), 10.0, 100.0)
+    tracker.add(_tiny_segment(1))
+    trigger.observe(tracker)
+    assert trigger.select(tracker, 120.0) is None  # one new id after 20 m: not yet (50 m)
+    assert not trigger.gate(12.0, 112.0)  # 2 s and 12 m: skipped
+    tracker.add(_tiny_segment(2))
+    trigger.observe(tracker)
+    trigger.use_spacing(SubmapSpacingConfig(trigger_path_m=20.0, min_interval_s=1.0, min_path_m=10.0))
+    assert [s.id for s in trigger.select(tracker, 120.0)][:1] == [2]  # 20 m now triggers
+    assert trigger.gate(12.0, 112.0)  # 2 s and 12 m now pass
+    assert not trigger.gate(10.5, 105.0) and trigger.pending == [2]  # 0.5 s: postponed, the new id stays
 
 
 def test_prune_keeps_what_can_still_be_selected():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -14,8 +16,8 @@ from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.simulate import simulate_sequence
 
 # A drive long enough for a global fix on the tiny world; frames one batch each, as live input comes.
-CFG = load_config(CONFIG_DIR / "tiny.yaml", ["sim.trajectory.length_m=400", "sim.world.size_m=[200.0,200.0]",
-                                             "ground_map.batch_size=1"])
+CFG_OVERRIDES = ["sim.trajectory.length_m=400", "sim.world.size_m=[200.0,200.0]", "ground_map.batch_size=1"]
+CFG = load_config(CONFIG_DIR / "tiny.yaml", CFG_OVERRIDES)
 
 
 @pytest.fixture(scope="module")
@@ -78,3 +80,24 @@ def test_bad_frames_are_refused_naming_the_field(world) -> None:
     live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp)
     with pytest.raises(ValueError, match="strictly increasing"):
         live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp)
+
+
+@pytest.mark.slow
+def test_submaps_come_denser_from_the_fix_on(tmp_path: Path) -> None:
+    # a longer drive than `world`'s, so that several submaps follow the fix
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", [*CFG_OVERRIDES, "sim.trajectory.length_m=700",
+                                                 "ground_map.submap_spacing_after_fix="
+                                                 "{trigger_path_m: 12, min_interval_s: 0, min_path_m: 12}"])
+    simulate_sequence(cfg.sim, tmp_path / "seq")
+    reader = SequenceReader(tmp_path / "seq")
+    aerial_map = build_aerial_map(read_orthophoto(tmp_path / "seq"),
+                                  AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives))
+    run = localize_sequence(reader, aerial_map, cfg, resolve_runtime(cfg.runtime))
+    fix = run.result.fix_submap_index
+    assert fix is not None
+    gaps = np.diff([s.path_length_m for s in run.submaps])
+    before, after = gaps[:fix], gaps[fix:]
+    assert len(after) >= 3
+    # before the fix the default gates hold; after it, gaps those gates forbid, none below the new one
+    assert before.min() >= cfg.ground_map.submap_min_path_m - 1e-9
+    assert after.min() >= 12.0 - 1e-9 and (after < cfg.ground_map.submap_min_path_m).any()

@@ -192,6 +192,17 @@ class GroundTrackingConfig(StrictModel):
     max_merge_passes: int = Field(default=100, ge=0, description="merging passes per frame")
 
 
+class SubmapSpacingConfig(StrictModel):
+    """Submap spacing once the robot is localized (replaces the three submap_* spacing keys from
+    the fix on): after the fix a submap is matched cheaply near its predicted pose, so denser,
+    overlapping submaps correct the online estimate more often (the authors' newer code: every
+    20 m with a 40 m radius)."""
+
+    trigger_path_m: float = Field(gt=0, description="trigger a submap after this much travel if any segment is new")
+    min_interval_s: float = Field(ge=0, description="a submap this soon after the previous one is skipped")
+    min_path_m: float = Field(ge=0, description="a submap after less travel than this is skipped")
+
+
 class GroundMapConfig(StrictModel):
     """Ground mapping: per-frame observations, 3D segment tracking, and 2D submaps (paper III-A)."""
 
@@ -211,6 +222,9 @@ class GroundMapConfig(StrictModel):
     )
     submap_min_path_m: float = Field(
         default=20.0, ge=0, description="a submap after less odometry travel than this is skipped (newer reference)"
+    )
+    submap_spacing_after_fix: SubmapSpacingConfig | None = Field(
+        default=None, description="submap spacing from the localizer's global fix on (None: unchanged)"
     )
     occluded_ring_m: float = Field(
         default=0.5, ge=0, description="points in the outer ring (radius - this, radius] become occluded"

@@ -5,7 +5,11 @@ joins a "new" list; with `submap_trigger_new_segments` new ids (or, if `submap_t
 is set, any new id after that much travel) a submap takes them all plus the most recently seen
 other segments, `submap_max_segments` in total (consecutive submaps
 overlap). A submap sooner than `submap_min_interval_s` or `submap_min_path_m` of odometry after
-the previous one is skipped and the new list cleared (newer reference gates).
+the previous one is skipped and the new list cleared (newer reference gates). Once the robot is
+localized, `SubmapTrigger.use_spacing` may switch the three spacing values
+(`submap_spacing_after_fix`); a submap too close to the previous one is then postponed instead
+of skipped: the submap centre (the new segments' median time) trails the robot, so skipping
+would space submaps by much more than the configured travel.
 
 Conversion (`submap_primitives`, reference `convert_submap_to_sparse_2d`):
 1. crop every segment to `submap_radius_m` (3D distance) around the centre camera position;
@@ -34,7 +38,7 @@ import torch
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from meridian_torch.config import GroundMapConfig
-from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
 from meridian_torch.mapping.ground_observations import (
     group_largest_cluster,
     group_outlier_mask,
@@ -59,6 +63,11 @@ class SubmapTrigger:
     in_submap: set[int] = field(default_factory=set)
     last_time: float | None = None
     last_path_m: float | None = None
+    spacing: SubmapSpacingConfig | None = None  # None: the cfg's submap_trigger_path_m / min_interval_s / min_path_m
+
+    def use_spacing(self, spacing: SubmapSpacingConfig) -> None:
+        """Space the following submaps by `spacing` (e.g. from the global fix on)."""
+        self.spacing = spacing
 
     def observe(self, tracker: SegmentTracker) -> None:
         """Register the ids that left the nursery; forget ids that vanished (merged, deleted)."""
@@ -73,7 +82,8 @@ class SubmapTrigger:
         """The segments of the next submap if it triggers at odometry path length `path_m`
         (`force`: any new id is enough)."""
         travelled = path_m - (self.last_path_m or 0.0)
-        by_path = self.cfg.submap_trigger_path_m is not None and travelled >= self.cfg.submap_trigger_path_m
+        trigger_m = self.cfg.submap_trigger_path_m if self.spacing is None else self.spacing.trigger_path_m
+        by_path = trigger_m is not None and travelled >= trigger_m
         needed = 1 if force or by_path else self.cfg.submap_trigger_new_segments
         if not self.pending or len(self.pending) < needed:
             return None
@@ -85,12 +95,14 @@ class SubmapTrigger:
         return chosen
 
     def gate(self, time: float, path_m: float) -> bool:
-        """True if a submap at (time, path length) may be made; False skips it and clears the new list."""
-        ok = self.last_time is None or (
-            time - self.last_time >= self.cfg.submap_min_interval_s
-            and path_m - self.last_path_m >= self.cfg.submap_min_path_m
-        )
-        if not ok:
+        """True if a submap at (time, path length) may be made. False skips it and clears the new
+        list; with `use_spacing` it is only postponed (the new list stays, so the next frames
+        try again), which spaces submap centres by the configured travel."""
+        c, sp = self.cfg, self.spacing
+        min_interval_s, min_path_m = (c.submap_min_interval_s, c.submap_min_path_m) if sp is None else (
+            sp.min_interval_s, sp.min_path_m)
+        ok = self.last_time is None or (time - self.last_time >= min_interval_s and path_m - self.last_path_m >= min_path_m)
+        if not ok and sp is None:
             self.pending.clear()
         return ok
 

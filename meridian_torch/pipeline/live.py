@@ -131,6 +131,9 @@ class LiveLocalizer:
             self.submaps.append(submap)
             with stage("localization"):
                 events.append(self.localizer.add_submap(submap, available_time=available_time))
+        spacing = self.mapper.cfg.submap_spacing_after_fix
+        if spacing is not None and any(e.fix_committed for e in events):
+            self.mapper.trigger.use_spacing(spacing)
         T_world_base, covariance = self.localizer.latest_estimate()
         return LiveEstimate(float(self.localizer.frame_times[-1]), T_world_base, covariance, self.localizer.state,
                             tuple(events))
