@@ -16,11 +16,11 @@ Variants:
                colours, some objects removed or added) while the robot sees today's world
 
 The table gives per run the final and incremental ATE, the worst incremental error, the fraction
-of frames localized online, the distance to the first fix, the consistency of the final per-pose
-covariance (mean position NEES and the fraction of positions inside the 2-sigma ellipse) and the
-real-time factor; the JSON keeps every metric. The covariance columns need `backend.covariance`,
-which is on as shipped (`--set backend.covariance=false` leaves them empty and saves the marginals'
-time).
+of frames localized online, the distance to the first fix, the consistency of the final and of the
+online per-pose covariance (mean position NEES and the fraction of positions inside the 2-sigma
+ellipse, final / online) and the real-time factor; the JSON keeps every metric. The covariance
+columns need `backend.covariance`, which is on as shipped (`--set backend.covariance=false` leaves
+them empty and saves the marginals' time).
 
 Usage:
   python scripts/exp_localization.py --work-dir runs/exp [--sequences demo 00 09] \
@@ -137,30 +137,35 @@ def _percent(value: float | None) -> str:
     return "-" if value is None else f"{100 * value:.0f} %"
 
 
+def _nees(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
 def table(rows: list[dict]) -> str:
     """One line per run: final and incremental ATE (RMSE), the worst incremental error, frames with
-    an online estimate, ground-truth distance to the first fix, the final covariance's consistency
-    (position NEES, consistent 2; positions inside the 2-sigma ellipse, consistent 86 %), RTF."""
+    an online estimate, ground-truth distance to the first fix, the final and online covariances'
+    consistency as "final / online" (position NEES, consistent 2; positions inside the 2-sigma
+    ellipse, consistent 86 %), RTF."""
     lines = [
         "| world | variant | frames | submaps | ATE final (m) | ATE incremental (m) | worst incremental (m) "
-        "| localized online | first fix (m) | position NEES (2) | inside 2 sigma (86 %) "
-        "| paper inc. / final (m) | RTF |",
+        "| localized online | first fix (m) | position NEES final / online (2) "
+        "| inside 2 sigma final / online (86 %) | paper inc. / final (m) | RTF |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         m = r["metrics"]
         inc = m.get("incremental") or {}
         fin = m.get("final") or {}
-        consistency = m.get("final_covariance_consistency") or {}
-        nees = consistency.get("position_nees_mean")
+        consistency = [m.get(f"{name}_covariance_consistency") or {} for name in ("final", "incremental")]
+        nees = " / ".join(_nees(c.get("position_nees_mean")) for c in consistency)
+        within = " / ".join(_percent(c.get("position_within_2sigma")) for c in consistency)
         paper = PAPER.get(r["sequence"])
         paper_s = f"{paper[0]} / {paper[1]}" if paper and r["variant"] == "default" else ""
         lines.append(
             f"| {r['sequence']} | {r['variant']} | {r['frames']} | {r['submaps']} | {_fmt(fin.get('ate_rmse_m'))} "
             f"| {_fmt(inc.get('ate_rmse_m'))} | {_fmt(inc.get('ate_max_m'))} "
             f"| {_percent(m.get('fraction_localized'))} | {_fmt(m.get('distance_to_first_fix_m'))} "
-            f"| {'-' if nees is None else f'{nees:.2f}'} | {_percent(consistency.get('position_within_2sigma'))} "
-            f"| {paper_s} | {r['real_time_factor']:.2f} |"
+            f"| {nees} | {within} | {paper_s} | {r['real_time_factor']:.2f} |"
         )
     return "\n".join(lines)
 

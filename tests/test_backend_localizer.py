@@ -8,15 +8,22 @@ not matching (tested in the matching suite; an end-to-end run with the real matc
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from meridian_torch.backend.frames import OnlineUpdate
 from meridian_torch.backend.localizer import Localizer, localize_offline
+from meridian_torch.backend.pose_graph import propagate_covariance
 from meridian_torch.config import MeridianConfig
-from meridian_torch.geometry.planar import yaw_of
+from meridian_torch.geometry.planar import se2_from_se3, yaw_of
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse
 from meridian_torch.geometry.trajectory import Trajectory
@@ -200,7 +207,8 @@ def run():
     world = World(seed=1)
     world.bad_submaps = {0, 1, 2, 3}
     world.corrupt_submaps = {6}
-    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher)
+    # online update covariances on, as the pipeline does with `backend.covariance`
+    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher, online_covariance=True)
     events = [loc.add_submap(s) for s in world.submaps()]
     return world, loc, events, loc.finalize()
 
@@ -255,6 +263,59 @@ def test_online_estimate_is_causal_and_close(run) -> None:
         loc2.add_submap(s)
     cut = world.times < world.times[world.submap_frames[11]]
     assert np.allclose(loc2.online_estimate()[cut], inc[cut], equal_nan=True)
+
+
+def test_online_covariances_carry_the_update_of_the_online_estimate(run) -> None:
+    """Per frame: the marginal of the update whose anchor gives the online estimate there, carried
+    from that update's anchor frame along the odometry; NaN before the fix."""
+    world, loc, _events, result = run
+    cov = loc.online_covariances()
+    np.testing.assert_array_equal(cov, result.covariance_incremental)
+    online = result.incremental_frames
+    assert online.any() and not online.all()
+    assert np.isnan(cov[~online]).all() and np.isfinite(cov[online]).all()
+    updates = loc._updates
+    assert len(updates) > 1 and all(u.covariance is not None for u in updates)
+    odom_se2 = se2_from_se3(world.odometry.poses)
+    used = set()
+    for k in np.flatnonzero(online):
+        i = max(i for i, u in enumerate(updates) if u.available_time <= world.times[k])
+        u = updates[i]
+        used.add(i)
+        # the update whose anchor the online estimate uses at this frame
+        np.testing.assert_allclose((u.T_world_odom @ odom_se2[k])[:2, 2], result.T_world_base_incremental[k, :2, 3],
+                                   atol=1e-9)
+        assert u.node <= k
+        expected = propagate_covariance(u.covariance, u.T_world_odom @ odom_se2[u.node : k + 1], loc.cfg.backend)
+        np.testing.assert_allclose(cov[k], expected, rtol=1e-12, atol=0)
+        if k == u.node:
+            np.testing.assert_array_equal(cov[k], u.covariance)
+    assert len(used) == len(updates)
+    np.testing.assert_allclose(cov[-1], loc.latest_estimate()[1], rtol=1e-12)
+
+
+def test_a_frame_before_its_updates_anchor_frame_is_carried_back(run) -> None:
+    """Updates out of time order (not made by the localizer itself) can anchor after a frame that
+    uses them: the anchor's marginal is then carried back along the odometry."""
+    world, full, _events, _result = run
+    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher)
+    anchor_cov = np.diag([0.2, 0.3, 1e-4])
+    T_world_odom = full._updates[0].T_world_odom
+    loc._updates.append(OnlineUpdate(float(world.times[100]), T_world_odom, 120, anchor_cov))
+    cov = loc.online_covariances()
+    assert np.isnan(cov[:100]).all() and np.isfinite(cov[100:]).all()
+    np.testing.assert_array_equal(cov[120], anchor_cov)
+    back = (T_world_odom @ se2_from_se3(world.odometry.poses[105:121]))[::-1]
+    np.testing.assert_allclose(cov[105], propagate_covariance(anchor_cov, back, loc.cfg.backend), rtol=1e-12)
+    # away from the anchor frame, backwards or forwards, the position uncertainty grows
+    for k in (100, 110, 130, 200):
+        assert np.all(np.linalg.eigvalsh(cov[k][:2, :2] - anchor_cov[:2, :2]) > 0)
+
+
+def test_without_online_covariance_the_result_has_none() -> None:
+    _world, loc, _oldest, result = _windowed_run(4)
+    assert not loc.online_covariance and result.covariance_incremental is None
+    assert result.incremental_frames.any() and np.isnan(loc.online_covariances()).all()
 
 
 def _windowed_run(window: int):
@@ -323,8 +384,6 @@ def test_offline_mode_localizes() -> None:
 
 
 def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_path) -> None:
-    import dataclasses
-
     from meridian_torch.config import EvaluationConfig
     from meridian_torch.evaluation.trajectory_metrics import evaluate_run
     from meridian_torch.pipeline.outputs import write_outputs
@@ -332,11 +391,12 @@ def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_pa
     world, _loc, _events, result = run
     write_outputs(tmp_path, result, crs="EPSG:32632")
     evaluate_run(tmp_path, world.gt, EvaluationConfig())
-    stale = ("trajectory.tum", "trajectory_incremental.tum", "covariance.csv", "trajectory_latlon.csv",
-             "trajectory.geojson", "metrics.json")
+    stale = ("trajectory.tum", "trajectory_incremental.tum", "covariance.csv", "covariance_incremental.csv",
+             "trajectory_latlon.csv", "trajectory.geojson", "metrics.json")
     assert all((tmp_path / name).is_file() for name in stale)
     nan = np.full_like(result.T_world_base, np.nan)
-    lost = dataclasses.replace(result, localized=False, T_world_base=nan, T_world_base_incremental=nan, covariance=None)
+    lost = dataclasses.replace(result, localized=False, T_world_base=nan, T_world_base_incremental=nan, covariance=None,
+                               covariance_incremental=None)
     written = write_outputs(tmp_path, lost, crs="EPSG:32632")
     # A later evaluation must not find the earlier run's trajectories (it would report their ATE).
     assert not any((tmp_path / name).exists() for name in stale)
@@ -345,7 +405,7 @@ def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_pa
 
 def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     from meridian_torch.config import EvaluationConfig
-    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run, read_covariances
     from meridian_torch.io.poses import parse_tum
     from meridian_torch.io.results import read_outputs
     from meridian_torch.pipeline.outputs import write_outputs
@@ -356,6 +416,7 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
         "trajectory.tum",
         "trajectory_incremental.tum",
         "covariance.csv",
+        "covariance_incremental.csv",
         "loop_closures.csv",
         "hypotheses.csv",
         "submaps.csv",
@@ -369,6 +430,9 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     assert np.allclose(final.poses, result.T_world_base, atol=1e-9)
     inc, problems = parse_tum(tmp_path / "trajectory_incremental.tum")
     assert not problems and inc.timestamps[0] >= result.fix_time  # only from the fix on
+    # One covariance row per frame of trajectory_incremental.tum (read_covariances checks the times).
+    online_cov = read_covariances(tmp_path / "covariance_incremental.csv", inc)
+    np.testing.assert_allclose(online_cov, result.covariance_incremental[result.incremental_frames], rtol=1e-12)
     # Every data line is `timestamp tx ty tz qx qy qz qw`.
     lines = [ln for ln in (tmp_path / "trajectory.tum").read_text().splitlines() if not ln.startswith("#")]
     assert all(len(ln.split()) == 8 for ln in lines)
@@ -392,6 +456,8 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     assert metrics["time_to_first_fix_s"] == pytest.approx(result.fix_time - world.times[0])
     # ground truth runs 1 m per frame
     assert metrics["distance_to_first_fix_m"] == pytest.approx(result.fix_time / 0.5, rel=1e-3)
+    online = metrics["incremental_covariance_consistency"]
+    assert online["n"] == len(inc) and online["n_invalid_covariance"] == 0
     reg = metrics["registration_success"]["place_recognition"]["5m_5deg"]
     # Submaps 0-3 have no correct hypothesis and 6 a corrupted one; the others before the fix have
     # one at rank 1 or 2 of their patch (probabilities 0.4 / 0.3, a tie across patches).
@@ -404,6 +470,33 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     assert set(rows["submap_index"].tolist()) == {e.submap_index for e in events}
     final = metrics["registration_success"]["final_rematch"]["5m_5deg"]
     assert final["n_submaps"] == len(events) and final["top25"] >= final["top1"] > 0
+
+
+@settings(max_examples=15, deadline=None)
+@given(fix_fraction=st.floats(0.0, 1.0, exclude_max=True), seed=st.integers(0, 2**32 - 1))
+def test_covariance_incremental_csv_round_trips(run, fix_fraction: float, seed: int) -> None:
+    """Whatever frame the fix comes at and whatever the values, covariance_incremental.csv has one
+    row per frame of trajectory_incremental.tum, at its timestamps, with the values exactly."""
+    from meridian_torch.evaluation.trajectory_metrics import read_covariances
+    from meridian_torch.io.poses import read_tum
+    from meridian_torch.pipeline.outputs import write_outputs
+
+    _world, _loc, _events, result = run
+    n = len(result.frame_times)
+    fix_frame = int(fix_fraction * n)
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(-6, 4, (n, 1, 1))  # variances 1e-12 to 1e8
+    cov = A @ np.swapaxes(A, 1, 2)
+    cov[:fix_frame] = np.nan
+    online = result.T_world_base.copy()  # stands in for an online estimate from fix_frame on
+    online[:fix_frame] = np.nan
+    changed = dataclasses.replace(result, T_world_base_incremental=online, covariance_incremental=cov)
+    with tempfile.TemporaryDirectory() as tmp:
+        write_outputs(tmp, changed)
+        inc = read_tum(Path(tmp) / "trajectory_incremental.tum")
+        assert len(inc) == n - fix_frame
+        np.testing.assert_allclose(inc.timestamps, result.frame_times[fix_frame:], rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(read_covariances(Path(tmp) / "covariance_incremental.csv", inc), cov[fix_frame:])
 
 
 def test_report_is_written(run, tmp_path) -> None:

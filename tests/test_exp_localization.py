@@ -36,15 +36,37 @@ def test_table_gives_every_column_per_world() -> None:
             "position_nees_mean": 5.126,
             "position_within_2sigma": 0.612,
         },
+        "incremental_covariance_consistency": {
+            "n": 380,
+            "position_nees_mean": 2.304,
+            "position_within_2sigma": 0.847,
+        },
     }
     header, rule, line = exp.table([_row(metrics)]).splitlines()
     cells = dict(zip(_cells(header), _cells(line)))
     assert len(_cells(header)) == len(_cells(line)) == rule.count("---")
     assert cells["ATE final (m)"] == "0.8" and cells["ATE incremental (m)"] == "2.2"
     assert cells["worst incremental (m)"] == "6.7" and cells["localized online"] == "80 %"
-    assert cells["first fix (m)"] == "338.4" and cells["position NEES (2)"] == "5.13"
-    assert cells["inside 2 sigma (86 %)"] == "61 %" and cells["paper inc. / final (m)"] == "2.4 / 2.1"
+    assert cells["first fix (m)"] == "338.4" and cells["position NEES final / online (2)"] == "5.13 / 2.30"
+    assert cells["inside 2 sigma final / online (86 %)"] == "61 % / 85 %"
+    assert cells["paper inc. / final (m)"] == "2.4 / 2.1"
     assert cells["RTF"] == "0.41"
+
+
+def test_table_without_the_online_covariance() -> None:
+    """A run folder without covariance_incremental.csv (written before it existed) keeps the final
+    columns and shows '-' for the online ones."""
+    metrics = {
+        "final": {"ate_rmse_m": 0.84, "ate_max_m": 2.0},
+        "incremental": {"ate_rmse_m": 2.21, "ate_max_m": 6.73},
+        "fraction_localized": 0.803,
+        "distance_to_first_fix_m": 338.4,
+        "final_covariance_consistency": {"n": 477, "position_nees_mean": 1.9, "position_within_2sigma": 0.9},
+    }
+    header, _, line = exp.table([_row(metrics)]).splitlines()
+    cells = dict(zip(_cells(header), _cells(line)))
+    assert cells["position NEES final / online (2)"] == "1.90 / -"
+    assert cells["inside 2 sigma final / online (86 %)"] == "90 % / -"
 
 
 def test_table_of_a_run_that_never_localized() -> None:
@@ -54,6 +76,7 @@ def test_table_of_a_run_that_never_localized() -> None:
         "fraction_localized": 0.0,
         "distance_to_first_fix_m": None,
         "final_covariance_consistency": None,
+        "incremental_covariance_consistency": None,
     }
     header, _, line = exp.table([_row(metrics)]).splitlines()
     cells = dict(zip(_cells(header), _cells(line)))
@@ -62,8 +85,8 @@ def test_table_of_a_run_that_never_localized() -> None:
         "ATE incremental (m)",
         "worst incremental (m)",
         "first fix (m)",
-        "position NEES (2)",
-        "inside 2 sigma (86 %)",
     ):
         assert cells[column] == "-"
+    for column in ("position NEES final / online (2)", "inside 2 sigma final / online (86 %)"):
+        assert cells[column] == "- / -"
     assert cells["localized online"] == "0 %"

@@ -198,8 +198,11 @@ def test_poses_without_groundtruth_or_valid_covariance_are_skipped_and_counted()
     assert none["n"] == 0 and none["nees_mean"] is None and none["n_invalid_covariance"] == 50
 
 
-def _write_run(out_dir, gt: Trajectory, est: Trajectory, cov: np.ndarray | None) -> None:
-    """A run folder as `pipeline.outputs.write_outputs` writes it, localized, without loop closures."""
+def _write_run(
+    out_dir, gt: Trajectory, est: Trajectory, cov: np.ndarray | None, cov_incremental: np.ndarray | None = None
+) -> None:
+    """A run folder as `pipeline.outputs.write_outputs` writes it, localized, without loop closures;
+    the online estimate is `est` from half-way on, its covariances `cov_incremental` (N, 3, 3)."""
     from meridian_torch.backend.candidates import LoopClosureCandidates
     from meridian_torch.backend.results import LocalizationResult
     from meridian_torch.pipeline.outputs import write_outputs
@@ -220,6 +223,7 @@ def _write_run(out_dir, gt: Trajectory, est: Trajectory, cov: np.ndarray | None)
         final_hypotheses=LoopClosureCandidates.empty(),
         events=[],
         timings={},
+        covariance_incremental=cov_incremental,
     )
     write_outputs(out_dir, result)
 
@@ -243,3 +247,32 @@ def test_evaluate_run_and_report_carry_the_covariance_consistency(tmp_path) -> N
     _write_run(tmp_path, gt, est, None)  # without covariance.csv: no consistency
     assert evaluate_run(tmp_path, gt)["final_covariance_consistency"] is None
     assert "NEES" not in write_report(tmp_path, metrics=evaluate_run(tmp_path, gt)).read_text()
+
+
+def test_evaluate_run_and_report_carry_the_incremental_covariance_consistency(tmp_path) -> None:
+    from meridian_torch.evaluation.report import write_report
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
+
+    gt, est, cov, _ = _gaussian_case(12, n=200)
+    online_cov = cov.copy()
+    online_cov[:100] = np.nan  # before the fix (frames 0-99 have no online estimate)
+    online_cov[100:] *= 4.0  # differs from the final covariance: the metric reads the right file
+    _write_run(tmp_path, gt, est, cov, online_cov)
+    metrics = evaluate_run(tmp_path, gt)
+    online = Trajectory(est.timestamps[100:], est.poses[100:])
+    c = metrics["incremental_covariance_consistency"]
+    assert c == pytest.approx(covariance_consistency(online, online_cov[100:], gt), rel=1e-9)
+    assert c["n"] == 100 and c["n_invalid_covariance"] == 0
+    assert metrics["final_covariance_consistency"] == pytest.approx(covariance_consistency(est, cov, gt), rel=1e-9)
+    assert json.loads((tmp_path / "metrics.json").read_text())[
+        "incremental_covariance_consistency"
+    ] == pytest.approx(c)
+    text = write_report(tmp_path, metrics=metrics).read_text()
+    assert f"incremental covariance consistency over 100 poses: mean NEES {c['nees_mean']:.3g}" in text
+    assert "final covariance consistency over 200 poses" in text
+
+    _write_run(tmp_path, gt, est, cov)  # without covariance_incremental.csv: no online consistency
+    metrics = evaluate_run(tmp_path, gt)
+    assert metrics["incremental_covariance_consistency"] is None
+    assert metrics["final_covariance_consistency"] is not None
+    assert "incremental covariance consistency" not in write_report(tmp_path, metrics=metrics).read_text()

@@ -379,6 +379,27 @@ class Localizer:
         out[ok] = lift_se2(anchors @ self._odom_se2[ok], self.T_odom_base[ok])
         return self._to_world(out)
 
+    def online_covariances(self) -> np.ndarray:
+        """(N, 3, 3) covariance of (x, y, yaw), world axes, of `online_estimate` at every frame: its
+        update's anchor-frame marginal carried along the odometry to the frame
+        (`propagate_covariance`, as in `latest_estimate`). NaN before the fix and where the update
+        has no covariance (without `online_covariance`). A frame before its update's anchor frame
+        (only when updates came out of time order) is carried back along the same odometry."""
+        out = np.full((len(self.frame_times), 3, 3), np.nan)
+        if not self._updates:
+            return out
+        update_times = np.array([u.available_time for u in self._updates])
+        which = np.searchsorted(update_times, self.frame_times, side="right") - 1
+        for k in np.flatnonzero(which >= 0):
+            update = self._updates[which[k]]
+            if update.covariance is None:
+                continue
+            lo, hi = sorted((update.node, int(k)))
+            path = update.T_world_odom @ self._odom_se2[lo : hi + 1]
+            path = path if k >= update.node else path[::-1]  # from the anchor frame to frame k
+            out[k] = propagate_covariance(update.covariance, path, self.cfg.backend)
+        return out
+
     def latest_estimate(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The online T_world_base (4, 4, world) at the latest frame and its (3, 3) covariance of
         (x, y, yaw) in world axes, or (None, None) before the fix. The covariance is the anchor
@@ -456,6 +477,7 @@ class Localizer:
             events=list(self.events),
             timings=dict(self._timer.seconds),
             rejected_because="; ".join(rejected) or None,
+            covariance_incremental=self.online_covariances() if self.online_covariance else None,
         )
 
 

@@ -64,15 +64,23 @@ class LocalizationResult:
     events: list[LocalizerEvent]
     timings: dict[str, float]  # seconds per stage: matching, consistency, pose_graph
     rejected_because: str | None = None  # a solution passed the fix gate but failed the sanity gate (why)
+    # (N, 3, 3) covariance of the online estimate's world (x, y, yaw), NaN before the fix; None
+    # without the online updates' covariances
+    covariance_incremental: np.ndarray | None = None
 
     @property
     def final_trajectory(self) -> Trajectory | None:
         return Trajectory(self.frame_times, self.T_world_base) if self.localized else None
 
     @property
+    def incremental_frames(self) -> np.ndarray:
+        """(N,) bool: the frames with an online estimate (from the fix on)."""
+        return np.isfinite(self.T_world_base_incremental[:, 0, 0])
+
+    @property
     def incremental_trajectory(self) -> Trajectory | None:
         """The online estimate from the fix on (None without a fix)."""
-        ok = np.isfinite(self.T_world_base_incremental[:, 0, 0])
+        ok = self.incremental_frames
         if not ok.any():
             return None
         return Trajectory(self.frame_times[ok], self.T_world_base_incremental[ok])

@@ -173,11 +173,13 @@ def write_report(
                 f"{_fmt(metrics.get('distance_to_first_fix_m'))} m"
             ),
         ]
-        consistency = metrics.get("final_covariance_consistency")
-        if consistency is not None:
+        for name in ("final", "incremental"):
+            consistency = metrics.get(f"{name}_covariance_consistency")
+            if consistency is None:
+                continue
             within = consistency["position_within_2sigma"]
             lines.append(
-                f"- final covariance consistency over {consistency['n']} poses: mean NEES "
+                f"- {name} covariance consistency over {consistency['n']} poses: mean NEES "
                 f"{_fmt(consistency['nees_mean'])}, position NEES {_fmt(consistency['position_nees_mean'])}, "
                 f"{'-' if within is None else f'{100 * within:.1f} %'} of positions inside the 2-sigma ellipse "
                 f"(consistent: {CONSISTENT_NEES:g}, {CONSISTENT_POSITION_NEES:g}, "

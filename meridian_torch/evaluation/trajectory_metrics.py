@@ -5,8 +5,8 @@
   Computed for the final trajectory and for the incremental (online) one over its frames.
 - fraction of frames localized (frames with an online estimate / all frames), distance (ground
   truth path length) and time from the first frame to the first online estimate.
-- covariance consistency of the final trajectory (`covariance.csv`, world axes): mean NEES
-  e^T S^-1 e of e = (dx, dy, wrap(dyaw)) over the poses (a consistent estimator gives 3), of the
+- covariance consistency of the final trajectory (`covariance.csv`, world axes) and of the
+  incremental one (`covariance_incremental.csv`): mean NEES e^T S^-1 e of e = (dx, dy, wrap(dyaw)) over the poses (a consistent estimator gives 3), of the
   position alone (2), and the fraction of position errors inside the 2-sigma ellipse (1 - e^-2 =
   86.5 %). The errors are the unaligned world-frame ones, as the covariance is in world axes.
 - registration success top-k: per submap, its hypotheses ranked by probability (over all patches it
@@ -30,7 +30,13 @@ from meridian_torch.errors import SequenceFormatError
 from meridian_torch.geometry.planar import scalar_yaw_of, wrap_angle
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
-from meridian_torch.io.results import COVARIANCE_CSV, METRICS_JSON, RunOutputs, read_outputs
+from meridian_torch.io.results import (
+    COVARIANCE_CSV,
+    COVARIANCE_INCREMENTAL_CSV,
+    METRICS_JSON,
+    RunOutputs,
+    read_outputs,
+)
 
 __all__ = [
     "CONSISTENT_NEES",
@@ -162,7 +168,8 @@ _COVARIANCE_COLUMNS = ["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"]
 
 
 def read_covariances(path: str | Path, est: Trajectory) -> np.ndarray:
-    """(N, 3, 3) covariances of `est`'s poses from a `covariance.csv` (io.results), one row per pose."""
+    """(N, 3, 3) covariances of `est`'s poses from a `covariance.csv` or `covariance_incremental.csv`
+    (io.results), one row per pose."""
     path = Path(path)
     with open(path, newline="") as fh:
         rows = list(csv.reader(fh))
@@ -231,10 +238,14 @@ def _gt_distance(gt: Trajectory, t0: float, t1: float) -> float | None:
 
 
 def localization_metrics(
-    run: RunOutputs, gt: Trajectory, cfg: EvaluationConfig, final_covariance_xy_yaw: np.ndarray | None = None
+    run: RunOutputs,
+    gt: Trajectory,
+    cfg: EvaluationConfig,
+    final_covariance_xy_yaw: np.ndarray | None = None,
+    incremental_covariance_xy_yaw: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Every metric of one run's outputs against the ground truth (T_world_base); with the final
-    trajectory's (N, 3, 3) covariances also their consistency (`covariance_consistency`)."""
+    or incremental trajectory's (N, 3, 3) covariances also their consistency (`covariance_consistency`)."""
     s = run.summary
     metrics: dict[str, Any] = {
         "localized": bool(s["localized"]),
@@ -252,6 +263,11 @@ def localization_metrics(
     )
     inc = run.incremental
     metrics["incremental"] = trajectory_errors(inc, gt, cfg.max_time_difference_s).summary() if inc else None
+    metrics["incremental_covariance_consistency"] = (
+        covariance_consistency(inc, incremental_covariance_xy_yaw, gt, cfg.max_time_difference_s)
+        if inc is not None and incremental_covariance_xy_yaw is not None
+        else None
+    )
     n_inc = len(inc) if inc is not None else 0
     metrics["fraction_localized"] = n_inc / max(int(s["n_frames"]), 1)
     metrics["time_to_first_fix_s"] = metrics["distance_to_first_fix_m"] = None
@@ -293,8 +309,17 @@ def evaluate_run(
     """Metrics of the run in `out_dir` against `groundtruth`; also written to `out_dir/metrics.json`."""
     cfg = cfg or EvaluationConfig()
     run = read_outputs(out_dir)
-    cov_path = Path(out_dir) / COVARIANCE_CSV
-    cov = read_covariances(cov_path, run.final) if run.final is not None and cov_path.is_file() else None
-    metrics = localization_metrics(run, groundtruth, cfg, cov)
+
+    def covariances(name: str, est: Trajectory | None) -> np.ndarray | None:
+        path = Path(out_dir) / name
+        return read_covariances(path, est) if est is not None and path.is_file() else None
+
+    metrics = localization_metrics(
+        run,
+        groundtruth,
+        cfg,
+        covariances(COVARIANCE_CSV, run.final),
+        covariances(COVARIANCE_INCREMENTAL_CSV, run.incremental),
+    )
     write_text_atomic(Path(out_dir) / METRICS_JSON, json.dumps(metrics, indent=2) + "\n")
     return metrics

@@ -6,6 +6,9 @@ Files in the output folder:
 - `trajectory_incremental.tum`: the online estimate at each frame time from the fix on;
 - `covariance.csv`: per frame of trajectory.tum, the marginal covariance of (x, y, yaw) in
   world-aligned axes (m^2, m rad, rad^2): `timestamp,xx,xy,xyaw,yy,yyaw,yawyaw`;
+- `covariance_incremental.csv`: the same per frame of trajectory_incremental.tum (when the online
+  updates computed covariances, `backend.covariance`): the online update's marginal at its last
+  frame carried along the odometry to the frame;
 - `loop_closures.csv`: the final inlier loop closures (measured T_world_base at the submap time);
 - `hypotheses.csv`: every submap's candidates from its first matching (mode `place_recognition`
   before the fix, `rotation_prior` after it) and from the final pass's re-matching near the final
@@ -32,6 +35,7 @@ from meridian_torch.io.poses import read_tum
 
 __all__ = [
     "COVARIANCE_CSV",
+    "COVARIANCE_INCREMENTAL_CSV",
     "FINAL_TUM",
     "GEOJSON",
     "HYPOTHESES_CSV",
@@ -49,6 +53,7 @@ __all__ = [
 FINAL_TUM = "trajectory.tum"
 INCREMENTAL_TUM = "trajectory_incremental.tum"
 COVARIANCE_CSV = "covariance.csv"
+COVARIANCE_INCREMENTAL_CSV = "covariance_incremental.csv"
 LOOP_CLOSURES_CSV = "loop_closures.csv"
 HYPOTHESES_CSV = "hypotheses.csv"
 SUBMAPS_CSV = "submaps.csv"

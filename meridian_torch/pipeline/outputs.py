@@ -9,6 +9,8 @@ import io
 import json
 from pathlib import Path
 
+import numpy as np
+
 from meridian_torch.backend.candidates import LoopClosureCandidates
 from meridian_torch.backend.results import LocalizationResult
 from meridian_torch.config import EvaluationConfig
@@ -19,6 +21,7 @@ from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.poses import write_tum
 from meridian_torch.io.results import (
     COVARIANCE_CSV,
+    COVARIANCE_INCREMENTAL_CSV,
     FINAL_TUM,
     GEOJSON,
     HYPOTHESES_CSV,
@@ -37,7 +40,9 @@ __all__ = ["write_outputs", "write_run_folder"]
 
 # Files a run writes only sometimes (when localized, with a CRS, with ground truth): a folder
 # reused for another run must not keep the previous run's copies.
-_OPTIONAL_OUTPUTS = (FINAL_TUM, INCREMENTAL_TUM, COVARIANCE_CSV, LATLON_CSV, GEOJSON, METRICS_JSON)
+_OPTIONAL_OUTPUTS = (
+    FINAL_TUM, INCREMENTAL_TUM, COVARIANCE_CSV, COVARIANCE_INCREMENTAL_CSV, LATLON_CSV, GEOJSON, METRICS_JSON
+)
 
 
 _CANDIDATE_COLUMNS = [
@@ -66,6 +71,16 @@ def _csv(header: list[str], rows: list[list[object]]) -> str:
 
 def _num(v: float) -> str:
     return repr(float(v))
+
+
+def _covariance_csv(times: np.ndarray, covariance: np.ndarray) -> str:
+    """(M,) times and (M, 3, 3) covariances of (x, y, yaw) as `covariance.csv` (io.results)."""
+    c = covariance
+    rows = [
+        [f"{t:.9f}", *(_num(c[k, i, j]) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
+        for k, t in enumerate(times)
+    ]
+    return _csv(["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"], rows)
 
 
 def _candidate_rows(c: LoopClosureCandidates) -> list[list[object]]:
@@ -148,12 +163,7 @@ def write_outputs(
         write_tum(out / FINAL_TUM, final, comment=f"meridian-torch final T_world_base ({_POSE_NOTE})")
         written[FINAL_TUM] = out / FINAL_TUM
         if result.covariance is not None:
-            c = result.covariance
-            rows = [
-                [f"{t:.9f}", *(_num(c[k, i, j]) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
-                for k, t in enumerate(result.frame_times)
-            ]
-            text(COVARIANCE_CSV, _csv(["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"], rows))
+            text(COVARIANCE_CSV, _covariance_csv(result.frame_times, result.covariance))
     if incremental is not None:
         write_tum(
             out / INCREMENTAL_TUM,
@@ -161,6 +171,9 @@ def write_outputs(
             comment=f"meridian-torch online T_world_base from the global fix on ({_POSE_NOTE})",
         )
         written[INCREMENTAL_TUM] = out / INCREMENTAL_TUM
+        if result.covariance_incremental is not None:
+            online_cov = result.covariance_incremental[result.incremental_frames]
+            text(COVARIANCE_INCREMENTAL_CSV, _covariance_csv(incremental.timestamps, online_cov))
     text(LOOP_CLOSURES_CSV, _csv(_CANDIDATE_COLUMNS, _candidate_rows(result.inliers)))
     hyp_rows = []
     for index in sorted(result.submap_hypotheses):
