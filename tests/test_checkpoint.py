@@ -102,6 +102,7 @@ def test_an_interrupted_localize_resumes_with_the_uninterrupted_result(tmp_path:
     assert resumed.exit_code == 0, resumed.output
     replayed = int(resumed.output.split("resumed: ")[1].split()[0])
     assert replayed >= 3
-    for name in ("trajectory.tum", "trajectory_incremental.tum", "covariance.csv", "loop_closures.csv"):
+    for name in ("trajectory.tum", "trajectory_incremental.tum", "covariance.csv", "covariance_incremental.csv",
+                 "loop_closures.csv"):
         assert (out / name).read_text() == (tmp_path / "whole" / name).read_text(), name
     assert not checkpoint.exists(), "a complete run removes its checkpoint"
