@@ -9,6 +9,7 @@ bitwise equal. The Ray tests skip when ray (extra 'distributed') is not installe
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +19,10 @@ from typer.testing import CliRunner
 
 from meridian_torch.cli import app
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.io.map_file import save_aerial_map
 from meridian_torch.io.ortho import Orthophoto, read_orthophoto, write_geotiff, write_orthophoto
 from meridian_torch.io.ortho_source import open_orthophoto
+from meridian_torch.mapping import aerial_map as aerial_map_module
 from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map, build_map_file
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.simulate import build_world
@@ -89,6 +92,59 @@ def test_windowed_file_build_equals_the_whole_image(ortho_files, reference_map, 
     built = _build_file(ortho_files[kind], tmp_path / "map.mtm")
     assert_identical(built, reference_map)
     assert not (tmp_path / "map.mtm.parts").exists() and (tmp_path / "map.mtm").is_file()
+
+
+def test_map_file_is_the_in_memory_writers_file(ortho_files, reference_map, tmp_path: Path) -> None:
+    """build_map_file writes the file from the part files patch by patch: byte for byte the file of
+    the whole map written from memory."""
+    _build_file(ortho_files["tif"], tmp_path / "map.mtm")
+    in_memory = dataclasses.replace(reference_map, source={"orthophoto": str(ortho_files["tif"].resolve())})
+    save_aerial_map(in_memory, tmp_path / "memory.mtm")
+    assert (tmp_path / "map.mtm").read_bytes() == (tmp_path / "memory.mtm").read_bytes()
+
+
+def test_interrupted_map_write_keeps_the_old_map_and_resumes(
+    ortho_files, reference_map, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Interrupted while the map file is written from the parts: the old map is untouched, no
+    temporary file is left, and the next run takes every patch from the parts."""
+    out = tmp_path / "map.mtm"
+    out.write_bytes(b"the old map")
+    read_part, reads = aerial_map_module._read_part, []
+
+    def interrupted(work_dir: Path, index: int, names: tuple[str, ...]):
+        reads.append(index)
+        if len(reads) == 7:  # after the counts of the 4 patches, within the arrays
+            raise KeyboardInterrupt
+        return read_part(work_dir, index, names)
+
+    monkeypatch.setattr(aerial_map_module, "_read_part", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _build_file(ortho_files["tif"], out)
+    assert out.read_bytes() == b"the old map" and not list(tmp_path.glob(".*"))
+    monkeypatch.setattr(aerial_map_module, "_read_part", read_part)
+    progress: list[int] = []
+    assert_identical(_build_file(ortho_files["tif"], out, progress=lambda d, t: progress.append(d)), reference_map)
+    assert progress == [4], "every patch was taken from the parts"
+
+
+def test_a_part_damaged_before_the_write_is_named_and_built_again(ortho_files, reference_map, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "map.mtm"
+    build_parts, damaged = aerial_map_module._build_parts, tmp_path / "map.mtm.parts" / "patch_000002.npz"
+
+    def damage_after(*args, **kwargs) -> None:
+        build_parts(*args, **kwargs)
+        damaged.write_bytes(damaged.read_bytes()[:100])
+
+    monkeypatch.setattr(aerial_map_module, "_build_parts", damage_after)
+    with pytest.raises(aerial_map_module.MapFileError, match=rf"^{damaged}: damaged part file .*run build-map again"):
+        _build_file(ortho_files["tif"], out)
+    assert not out.exists() and not damaged.exists()
+    monkeypatch.setattr(aerial_map_module, "_build_parts", build_parts)
+    progress: list[int] = []
+    assert_identical(_build_file(ortho_files["tif"], out, progress=lambda d, t: progress.append(d)), reference_map)
+    assert progress == [3, 4], "only the damaged patch was built again"
 
 
 def test_local_workers_open_the_file_themselves(ortho_files, reference_map) -> None:

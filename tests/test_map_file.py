@@ -144,11 +144,11 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path, monkeypatch: pytest.Mon
     before = path.read_bytes()
     calls = []
 
-    def failing_header(array: np.ndarray) -> bytes:
+    def failing_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes:
         calls.append(1)
         if len(calls) == 3:
             raise OSError("disk full")
-        return header(array)
+        return header(dtype, shape)
 
     header = npz_container._npy_header
     monkeypatch.setattr(npz_container, "_npy_header", failing_header)
@@ -247,3 +247,72 @@ def test_an_open_map_survives_the_file_being_replaced(tmp_path: Path) -> None:
     save_aerial_map(other, path)
     assert torch.equal(opened.primitives.points_xy, original.primitives.points_xy)
     assert torch.equal(load_aerial_map(path).primitives.points_xy, other.primitives.points_xy)
+
+
+def _patch_reader(aerial_map: AerialMap, calls: list[int] | None = None) -> map_file.PatchReader:
+    """Read one patch's unpadded arrays out of a map in memory, as a build reads its part files."""
+
+    def read_patch(index: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+        if calls is not None:
+            calls.append(index)
+        unpadded = aerial_map.primitives.unbatch(index)
+        arrays = {name: getattr(unpadded, name).numpy() for name in vars(unpadded)}
+        arrays["global_descriptors"] = aerial_map.global_descriptors[index].numpy()
+        return {name: arrays[name] for name in names}
+
+    return read_patch
+
+
+def _save_patchwise(aerial_map: AerialMap, path: Path, read_patch: map_file.PatchReader) -> str:
+    fields = ("meters_per_pixel", "origin_xy", "image_size", "local_origin_xy", "crs", "config", "backends", "source")
+    return map_file.save_aerial_map_patches(path, aerial_map.patches, read_patch,
+                                            **{name: getattr(aerial_map, name) for name in fields})
+
+
+def test_patchwise_file_is_the_in_memory_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Written patch by patch in blocks (the last one partial), the map file is byte for byte the
+    in-memory writer's, and every array reads back equal."""
+    monkeypatch.setattr(map_file, "_BLOCK_PATCHES", 4)
+    original = _map()
+    assert len(original) % 4 != 0
+    digest = save_aerial_map(original, tmp_path / "memory.mtm")
+    assert _save_patchwise(original, tmp_path / "patches.mtm", _patch_reader(original)) == digest
+    assert (tmp_path / "patches.mtm").read_bytes() == (tmp_path / "memory.mtm").read_bytes()
+    loaded = load_aerial_map(tmp_path / "patches.mtm")
+    for name, array in _all_arrays(original).items():
+        other = _all_arrays(loaded)[name]
+        assert array.dtype == other.dtype and np.array_equal(array, other), name
+
+
+def test_interrupted_patchwise_write_keeps_the_old_file(tmp_path: Path) -> None:
+    path = tmp_path / "m.mtm"
+    save_aerial_map(_map(), path)
+    before = path.read_bytes()
+    other = _map()
+    other.primitives.points_xy.add_(1.0)
+    calls: list[int] = []
+    reader = _patch_reader(other, calls)
+
+    def interrupted(index: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+        if len(calls) == 3 * len(other):  # within the arrays, after the counts
+            raise KeyboardInterrupt
+        return reader(index, names)
+
+    with pytest.raises(KeyboardInterrupt):
+        _save_patchwise(other, path, interrupted)
+    assert path.read_bytes() == before and not list(tmp_path.glob(".*"))
+
+
+def test_a_patch_unlike_the_others_is_refused(tmp_path: Path) -> None:
+    original = _map()
+    reader = _patch_reader(original)
+
+    def wider(index: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+        arrays = reader(index, names)
+        if index == 3 and "line_descriptors" in arrays:
+            arrays["line_descriptors"] = np.zeros((len(arrays["line_descriptors"]), 9), np.float32)
+        return arrays
+
+    with pytest.raises(ValueError, match=r"patch 3: line_descriptors is float32 \(\d+, 9\), expected float32"):
+        _save_patchwise(original, tmp_path / "m.mtm", wider)
+    assert not list(tmp_path.iterdir())

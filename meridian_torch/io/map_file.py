@@ -21,11 +21,13 @@ Version 1 files (world coordinates, no local origin) are read with a local origi
 Version 3 stores the arrays uncompressed at aligned offsets (`io.npz_container`), so a map is
 opened as memory maps of the file: only the pages a reader touches come into memory, and the
 kernel can drop them again. Versions 1 and 2 (compressed) are read whole into memory.
-Files are written atomically.
+Files are written atomically, from a map in memory (`save_aerial_map`) or patch by patch
+(`save_aerial_map_patches`: the same file, holding one block of patches at a time).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +35,12 @@ import numpy as np
 import torch
 
 from meridian_torch.errors import MeridianError
-from meridian_torch.io.npz_container import read_container, write_container
+from meridian_torch.io.npz_container import StreamedArray, read_container, write_container
 from meridian_torch.types import AerialMap, PatchGrid, PrimitiveBatch
 
 __all__ = [
-    "MAP_FORMAT", "MAP_FORMAT_VERSION", "MapFileError", "georeference_mismatches", "load_aerial_map",
-    "save_aerial_map",
+    "MAP_FORMAT", "MAP_FORMAT_VERSION", "MapFileError", "PatchReader", "georeference_mismatches", "load_aerial_map",
+    "save_aerial_map", "save_aerial_map_patches",
 ]
 
 MAP_FORMAT = "meridian-torch aerial map"
@@ -49,37 +51,57 @@ _PRIMITIVE_FIELDS = (
     "points_xy", "point_descriptors", "point_valid",
     "line_endpoints", "line_kinds", "line_descriptors", "line_valid",
 )
+_PATCH_FIELDS = ("global_descriptors", *(name for name in _PRIMITIVE_FIELDS if not name.endswith("_valid")))
+_BLOCK_PATCHES = 256  # patches per block written by save_aerial_map_patches
+
+PatchReader = Callable[[int, tuple[str, ...]], dict[str, np.ndarray]]
+"""(patch index, names) -> that patch's arrays, unpadded: `global_descriptors` (Dg,), `points_xy`
+(Np, 2), `point_descriptors` (Np, D), `line_endpoints` (Nl, 2, 2), `line_kinds` (Nl,),
+`line_descriptors` (Nl, D)."""
 
 
 class MapFileError(MeridianError):
     """An aerial map file is unreadable, corrupted, or from another version or config."""
 
 
-def _arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:
-    arrays = {
-        "patch_pixel_boxes": aerial_map.patches.pixel_boxes,
-        "patch_grid_index": aerial_map.patches.grid_index,
-        "patch_bounds_xy": aerial_map.patches.bounds_xy,
-        "patch_centres_xy": aerial_map.patches.centres_xy,
-        "global_descriptors": aerial_map.global_descriptors.detach().cpu().numpy(),
+def _grid_arrays(patches: PatchGrid) -> dict[str, np.ndarray]:
+    return {
+        "patch_pixel_boxes": np.ascontiguousarray(patches.pixel_boxes),
+        "patch_grid_index": np.ascontiguousarray(patches.grid_index),
+        "patch_bounds_xy": np.ascontiguousarray(patches.bounds_xy),
+        "patch_centres_xy": np.ascontiguousarray(patches.centres_xy),
     }
+
+
+def _arrays(aerial_map: AerialMap) -> dict[str, np.ndarray]:
+    arrays = {**_grid_arrays(aerial_map.patches), "global_descriptors": aerial_map.global_descriptors.detach().cpu().numpy()}
     for name in _PRIMITIVE_FIELDS:
         arrays[name] = getattr(aerial_map.primitives, name).detach().cpu().numpy()
     return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
 
 
 def _header(aerial_map: AerialMap) -> dict[str, Any]:
+    return _header_of(aerial_map.meters_per_pixel, aerial_map.origin_xy, aerial_map.image_size,
+                      aerial_map.local_origin_xy, aerial_map.crs, aerial_map.config, aerial_map.backends,
+                      aerial_map.source)
+
+
+def _header_of(
+    meters_per_pixel: float, origin_xy: tuple[float, float], image_size: tuple[int, int],
+    local_origin_xy: tuple[float, float], crs: str | None, config: dict[str, Any], backends: dict[str, str],
+    source: dict[str, str],
+) -> dict[str, Any]:
     return {
         "georeference": {
-            "meters_per_pixel": aerial_map.meters_per_pixel,
-            "origin": list(aerial_map.origin_xy),
-            "crs": aerial_map.crs,
-            "image_size": list(aerial_map.image_size),
-            "local_origin": [float(v) for v in aerial_map.local_origin_xy],
+            "meters_per_pixel": meters_per_pixel,
+            "origin": list(origin_xy),
+            "crs": crs,
+            "image_size": list(image_size),
+            "local_origin": [float(v) for v in local_origin_xy],
         },
-        "config": aerial_map.config,
-        "backends": aerial_map.backends,
-        "source": aerial_map.source,
+        "config": config,
+        "backends": backends,
+        "source": source,
     }
 
 
@@ -90,6 +112,72 @@ def save_aerial_map(aerial_map: AerialMap, path: Path) -> str:
     )
     aerial_map.content_hash = digest
     return digest
+
+
+def save_aerial_map_patches(
+    path: Path, patches: PatchGrid, read_patch: PatchReader, *, meters_per_pixel: float,
+    origin_xy: tuple[float, float], image_size: tuple[int, int], local_origin_xy: tuple[float, float],
+    crs: str | None, config: dict[str, Any], backends: dict[str, str], source: dict[str, str],
+) -> str:
+    """Write the map of `patches` to `path` atomically, reading each patch's arrays from `read_patch`,
+    and return its content hash: the file `save_aerial_map` writes for the same patches (padded as
+    `types.stack_primitive_sets` pads them), holding one block of patches at a time instead of
+    the map. Every patch is read once for its point and line counts (the padded widths), then
+    once for each array; the other arguments are the `AerialMap` fields of the same names."""
+    if len(patches) == 0:
+        raise ValueError("an aerial map needs at least one patch")
+    counts = np.array([[len(arrays["points_xy"]), len(arrays["line_kinds"])]
+                       for arrays in (read_patch(i, ("points_xy", "line_kinds")) for i in range(len(patches)))])
+    first = read_patch(0, _PATCH_FIELDS)  # dtypes and trailing shapes
+    arrays: dict[str, np.ndarray | StreamedArray] = {
+        **_grid_arrays(patches),
+        "global_descriptors": _streamed(read_patch, "global_descriptors", len(patches), first["global_descriptors"]),
+    }
+    for name in _PRIMITIVE_FIELDS:
+        patch_counts = counts[:, 0 if name.startswith("point") else 1]
+        if name.endswith("_valid"):
+            arrays[name] = _streamed_valid(patch_counts)
+        else:
+            arrays[name] = _streamed(read_patch, name, len(patches), first[name], patch_counts)
+    header = _header_of(meters_per_pixel, origin_xy, image_size, local_origin_xy, crs, config, backends, source)
+    return write_container(path, MAP_FORMAT, MAP_FORMAT_VERSION, header, arrays, compressed=False)
+
+
+def _patch_blocks(n_patches: int) -> Iterator[range]:
+    for start in range(0, n_patches, _BLOCK_PATCHES):
+        yield range(start, min(start + _BLOCK_PATCHES, n_patches))
+
+
+def _streamed(
+    read_patch: PatchReader, name: str, n_patches: int, first: np.ndarray, counts: np.ndarray | None = None
+) -> StreamedArray:
+    """Array `name` of every patch, stacked, or with `counts` (rows per patch) padded with zeros
+    to the largest count."""
+    row_shape = first.shape if counts is None else (int(counts.max()), *first.shape[1:])
+
+    def blocks() -> Iterator[np.ndarray]:
+        for block_range in _patch_blocks(n_patches):
+            block = np.zeros((len(block_range), *row_shape), first.dtype)
+            for k, i in enumerate(block_range):
+                array = read_patch(i, (name,))[name]
+                expected = first.shape if counts is None else (int(counts[i]), *first.shape[1:])
+                if array.shape != expected or array.dtype != first.dtype:
+                    raise ValueError(f"patch {i}: {name} is {array.dtype} {array.shape}, expected {first.dtype} {expected}")
+                block[k, : len(array)] = array
+            yield block
+
+    return StreamedArray(first.dtype, (n_patches, *row_shape), blocks)
+
+
+def _streamed_valid(counts: np.ndarray) -> StreamedArray:
+    """Which padded rows of each patch hold a primitive."""
+    width = int(counts.max())
+
+    def blocks() -> Iterator[np.ndarray]:
+        for block_range in _patch_blocks(len(counts)):
+            yield np.arange(width)[None, :] < counts[block_range.start : block_range.stop, None]
+
+    return StreamedArray(np.dtype(bool), (len(counts), width), blocks)
 
 
 def _config_differences(stored: Any, expected: Any, prefix: str = "") -> list[str]:

@@ -5,8 +5,10 @@ layout) of named arrays plus `header.json` (a uint8 array) carrying `format`, `f
 Arrays are written compressed (`np.savez_compressed`, read whole) or stored: uncompressed, each
 array's data at a 64-byte aligned file offset, and read as copy-on-write memory maps of the file,
 so that opening costs the hash, not a copy (the hash is computed by reading the file in chunks,
-which does not keep it in memory). Written atomically; reading checks the format, its version
-and the hash before any array is returned."""
+which does not keep it in memory). A stored array may be given as a `StreamedArray`, written block
+by block, so that writing a file larger than memory holds one block at a time; the hash of a stored
+file is computed from the written file, before `header.json` (the last member) is added. Written
+atomically; reading checks the format, its version and the hash before any array is returned."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import hashlib
 import json
 import struct
 import zipfile
+from collections.abc import Callable, Iterable
 from io import BytesIO
 from pathlib import Path
 from typing import IO, Any, NamedTuple
@@ -24,7 +27,7 @@ from meridian_torch import __version__
 from meridian_torch.errors import MeridianError
 from meridian_torch.io.atomic import atomic_path
 
-__all__ = ["content_hash", "write_container", "read_container"]
+__all__ = ["StreamedArray", "content_hash", "write_container", "read_container"]
 
 _ALIGN = 64  # bytes: array data starts at a multiple (numpy pads .npy headers to it as well)
 _PAD_EXTRA_ID = 0xD935  # the zip extra field that zipalign pads with
@@ -39,6 +42,15 @@ class _Stored(NamedTuple):
     dtype: np.dtype
     shape: tuple[int, ...]
     offset: int
+
+
+class StreamedArray(NamedTuple):
+    """A stored array written block by block: `blocks()` yields C-ordered arrays of `dtype` whose
+    concatenation along the first axis is the array of `shape`."""
+
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    blocks: Callable[[], Iterable[np.ndarray]]
 
 
 def _hash_start(header: dict[str, Any]) -> Any:
@@ -76,46 +88,74 @@ def _stored_content_hash(header: dict[str, Any], fh: IO[bytes], stored: dict[str
     return h.hexdigest()
 
 
-def _write_stored(fh: IO[bytes], arrays: dict[str, np.ndarray]) -> None:
-    """Arrays as uncompressed `.npy` zip members whose data start at multiples of `_ALIGN`."""
+def _write_stored(fh: IO[bytes], arrays: dict[str, np.ndarray | StreamedArray], header: dict[str, Any]) -> str:
+    """Arrays, then `header.json` with the content hash, as uncompressed `.npy` zip members whose
+    data start at multiples of `_ALIGN`; `fh` is open for reading and writing. Returns the hash."""
     with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED) as zf:
-        for name, array in arrays.items():
-            array = np.ascontiguousarray(array)
-            npy_header = _npy_header(array)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.file_size = len(npy_header) + array.nbytes
-            zip64 = info.file_size * 1.05 > zipfile.ZIP64_LIMIT  # zipfile's own rule
-            start = fh.tell() + _LOCAL_HEADER.size + len(info.filename.encode()) + 4 + _ZIP64_EXTRA * zip64
-            info.extra = struct.pack("<HH", _PAD_EXTRA_ID, -start % _ALIGN) + bytes(-start % _ALIGN)
-            with zf.open(info, "w", force_zip64=zip64) as member:
-                member.write(npy_header)
-                member.write(array.reshape(-1).view(np.uint8))
+        stored = {name: _write_member(zf, fh, name, array) for name, array in arrays.items()}
+        end = fh.tell()
+        digest = _stored_content_hash(header, fh, stored)
+        fh.seek(end)
+        header = {**header, "content_hash": digest}
+        _write_member(zf, fh, "header.json", np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8))
+    return digest
 
 
-def _npy_header(array: np.ndarray) -> bytes:
+def _write_member(zf: zipfile.ZipFile, fh: IO[bytes], name: str, array: np.ndarray | StreamedArray) -> _Stored:
+    """One array as a stored `.npy` member at the end of `fh`; where its data lies."""
+    if isinstance(array, np.ndarray):
+        whole = np.ascontiguousarray(array)
+        array = StreamedArray(whole.dtype, whole.shape, lambda: (whole,))
+    dtype, shape = np.dtype(array.dtype), tuple(array.shape)
+    npy_header = _npy_header(dtype, shape)
+    info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+    info.file_size = len(npy_header) + int(np.prod(shape)) * dtype.itemsize
+    zip64 = info.file_size * 1.05 > zipfile.ZIP64_LIMIT  # zipfile's own rule
+    start = fh.tell() + _LOCAL_HEADER.size + len(info.filename.encode()) + 4 + _ZIP64_EXTRA * zip64
+    info.extra = struct.pack("<HH", _PAD_EXTRA_ID, -start % _ALIGN) + bytes(-start % _ALIGN)
+    rows = 0
+    with zf.open(info, "w", force_zip64=zip64) as member:
+        member.write(npy_header)
+        for block in array.blocks():
+            if block.dtype != dtype or tuple(block.shape[1:]) != shape[1:]:
+                raise ValueError(f"array {name}: a block of {block.dtype} {block.shape} in an array of {dtype} {shape}")
+            member.write(np.ascontiguousarray(block).reshape(-1).view(np.uint8))
+            rows += block.shape[0]
+    if rows != shape[0]:
+        raise ValueError(f"array {name}: its blocks hold {rows} rows, its shape {shape} has {shape[0]}")
+    return _Stored(dtype, shape, start + -start % _ALIGN + len(npy_header))
+
+
+def _npy_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes:
+    """The `.npy` (version 1.0) header of a C-ordered array."""
     buffer = BytesIO()
-    np.lib.format.write_array_header_1_0(buffer, np.lib.format.header_data_from_array_1_0(array))
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False, "shape": shape}
+    np.lib.format.write_array_header_1_0(buffer, header)
     return buffer.getvalue()
 
 
 def write_container(
-    path: Path, fmt: str, version: int, header: dict[str, Any], arrays: dict[str, np.ndarray], *, compressed: bool = True
+    path: Path, fmt: str, version: int, header: dict[str, Any], arrays: dict[str, np.ndarray | StreamedArray], *,
+    compressed: bool = True,
 ) -> str:
     """Write `arrays` and `header` (format fields and hash added) to `path` atomically; returns the hash.
 
-    `compressed=False` stores the arrays uncompressed and aligned, for `read_container` to map.
+    `compressed=False` stores the arrays uncompressed and aligned, for `read_container` to map;
+    only stored arrays may be `StreamedArray`s.
     """
     header = {"format": fmt, "format_version": version, "package_version": __version__, **header}
-    header["content_hash"] = content_hash(header, arrays)
-    stored = dict(arrays)
-    stored["header.json"] = np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if not compressed:
+        with atomic_path(path) as tmp, open(tmp, "w+b") as fh:
+            return _write_stored(fh, arrays, header)
+    streamed = [name for name, array in arrays.items() if isinstance(array, StreamedArray)]
+    if streamed:
+        raise ValueError(f"arrays {streamed} are streamed: a compressed container needs them in memory")
+    header["content_hash"] = content_hash(header, arrays)
+    stored = {**arrays, "header.json": np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)}
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        if compressed:
-            np.savez_compressed(fh, **stored)
-        else:
-            _write_stored(fh, stored)
+        np.savez_compressed(fh, **stored)
     return header["content_hash"]
 
 

@@ -7,10 +7,13 @@ same blocks and yields their results in block order, so the map does not depend 
 `Orthophoto` travels with its pixels.
 
 - local, workers = 1: this process.
-- local, workers > 1: a spawn process pool, one mapper per process (CPU only).
+- local, workers > 1: a spawn process pool, one mapper per process (CPU only), at most two blocks
+  per worker submitted at a time (finished blocks wait for the one before them: what is held is
+  bounded by the workers, not by the map).
 - ray: one actor per worker holding the orthophoto, the grid and the mapper (neural back ends
   load their weights once per actor; an actor takes a GPU when the mapper's device is CUDA),
-  blocks dispatched to whichever actor is free; at most as many actors as the cluster has CPUs
+  blocks dispatched to whichever actor is free (an actor is free again once its result is taken, in
+  order, so results held are bounded by the actors); at most as many actors as the cluster has CPUs
   (GPUs). Without `aerial_map.ray_address` a local cluster with `workers` CPUs is started (and
   stopped afterwards); with it, the running cluster is joined. A Ray session already initialised
   by the caller is used as it is. Ray is imported only here.
@@ -18,7 +21,9 @@ same blocks and yields their results in block order, so the map does not depend 
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
+from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import TYPE_CHECKING
@@ -94,8 +99,13 @@ def _local_blocks(
     # spawn, not fork: a forked child of a process whose OpenMP pool is running can deadlock.
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(ortho, grid, mapper))
+    remaining = iter(blocks)
     try:
-        yield from pool.map(_describe_in_worker, blocks)
+        ahead = deque(pool.submit(_describe_in_worker, b) for b in itertools.islice(remaining, 2 * workers))
+        while ahead:
+            awaited = ahead.popleft()
+            ahead.extend(pool.submit(_describe_in_worker, b) for b in itertools.islice(remaining, 1))
+            yield awaited.result()
     finally:  # interrupted (Ctrl-C, an error while saving): drop the blocks not started
         pool.shutdown(wait=True, cancel_futures=True)
 

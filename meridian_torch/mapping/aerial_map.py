@@ -2,7 +2,9 @@
 
 Resumable: every finished patch is stored in a work folder next to the output (one small file
 per patch, keyed by the orthophoto's and the config's hashes), so an interrupted build continues
-where it stopped; the folder is removed once the map file is written.
+where it stopped; the folder is removed once the map file is written. The map file is written
+from these part files patch by patch (`io.map_file.save_aerial_map_patches`), so neither the build
+nor the write holds the whole map: memory does not grow with the area.
 
 Map frame: every coordinate in the map (patch bounds, primitives) is in metres relative to a
 local origin near the orthophoto (`map_frame_origin`), so that float32 tensors keep millimetres
@@ -37,7 +39,7 @@ from meridian_torch.config import AerialMapConfig, PerceptionConfig
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.config.perception import active_backend_dict
 from meridian_torch.io.atomic import atomic_path, write_text_atomic
-from meridian_torch.io.map_file import save_aerial_map
+from meridian_torch.io.map_file import MapFileError, load_aerial_map, save_aerial_map_patches
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.ortho_source import OrthophotoSource, open_orthophoto
 from meridian_torch.mapping.aerial_engines import described_blocks
@@ -47,7 +49,9 @@ from meridian_torch.perception.factory import build_global_describer, build_segm
 from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
 from meridian_torch.types import AerialMap, PatchGrid, PrimitiveSet, stack_primitive_sets
 
-__all__ = ["AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict", "map_frame_origin"]
+__all__ = [
+    "AerialMapper", "build_aerial_map", "build_map_file", "map_config_dict", "map_frame_origin", "write_aerial_map",
+]
 
 _LOCAL_ORIGIN_STEP_M = 10_000.0  # round numbers, and 0 for every orthophoto within 5 km of its CRS origin
 
@@ -169,6 +173,10 @@ def _work_key(ortho: Orthophoto | OrthophotoSource, config: dict[str, Any]) -> s
     return h.hexdigest()[:16]
 
 
+def _part_path(work_dir: Path, index: int) -> Path:
+    return work_dir / f"patch_{index:06d}.npz"
+
+
 def _save_patch(path: Path, prims: PrimitiveSet, global_desc: torch.Tensor) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, global_desc=global_desc.numpy(), **{k: v.numpy() for k, v in vars(prims).items()})
@@ -185,6 +193,89 @@ def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor] | None:
         return None
 
 
+def _damaged_part(path: Path, detail: str) -> MapFileError:
+    """A part file found damaged after the build (it is removed, so the next run builds it again)."""
+    path.unlink(missing_ok=True)
+    return MapFileError(f"{path}: damaged part file ({detail}); run build-map again to build that patch again")
+
+
+def _read_part(work_dir: Path, index: int, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Arrays of one finished patch by `io.map_file` name (`io.map_file.PatchReader`)."""
+    path = _part_path(work_dir, index)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {name: npz["global_desc" if name == "global_descriptors" else name] for name in names}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        raise _damaged_part(path, str(e)) from None
+
+
+def _patch_grid(ortho: Orthophoto | OrthophotoSource, mapper: AerialMapper) -> PatchGrid:
+    return tile_image(*ortho.size_px, ortho.meters_per_pixel, _corner_in_map_frame(ortho),
+                      mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
+
+
+def _map_fields(ortho: Orthophoto | OrthophotoSource, mapper: AerialMapper, source: dict[str, str] | None) -> dict[str, Any]:
+    """The `AerialMap` fields besides the patches and their arrays."""
+    return {
+        "meters_per_pixel": ortho.meters_per_pixel,
+        "origin_xy": ortho.origin_xy,
+        "local_origin_xy": map_frame_origin(ortho),
+        "image_size": ortho.size_px,
+        "crs": ortho.crs,
+        "config": mapper.config,
+        "backends": {
+            "segmenter": type(mapper.segmenter).__name__,
+            "describer": type(mapper.describer).__name__,
+            "global_describer": type(mapper.global_describer).__name__,
+        },
+        "source": source or {},
+    }
+
+
+def _describe_missing(
+    ortho: Orthophoto | OrthophotoSource, mapper: AerialMapper, grid: PatchGrid, done: set[int],
+    keep: Callable[[int, tuple[PrimitiveSet, torch.Tensor]], None], progress: Callable[[int, int], None] | None,
+) -> None:
+    """Describe the patches not in `done`, block by block on the mapper's engine, handing each to `keep`."""
+    todo = np.array([i for i in range(len(grid)) if i not in done], dtype=np.int64)
+    n_done = len(grid) - len(todo)
+    if progress is not None:
+        progress(n_done, len(grid))
+    block = mapper.aerial.batch_size
+    blocks = [todo[start : start + block] for start in range(0, len(todo), block)]
+    for indices, described in zip(blocks, described_blocks(ortho, grid, mapper, blocks)):
+        for i, result in zip(indices, described):
+            keep(int(i), result)
+        n_done += len(indices)
+        if progress is not None:
+            progress(n_done, len(grid))
+
+
+def _build_parts(
+    ortho: Orthophoto | OrthophotoSource, mapper: AerialMapper, grid: PatchGrid, work_dir: Path,
+    progress: Callable[[int, int], None] | None, on_message: Callable[[str], None] | None,
+) -> None:
+    """Every patch of `grid` as a part file in `work_dir`: those of an interrupted build of the same
+    orthophoto and config are kept (damaged ones built again), the others built. Holds no patch
+    beyond the engine's blocks in flight."""
+    key = _work_key(ortho, mapper.config)
+    key_file = work_dir / "key.txt"
+    if work_dir.exists() and (not key_file.is_file() or key_file.read_text() != key):
+        shutil.rmtree(work_dir)  # another orthophoto or config: nothing to resume
+    work_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(key_file, key)
+    done = set()
+    for path in sorted(work_dir.glob("patch_*.npz")):
+        if _load_patch(path) is None:
+            path.unlink()
+            if on_message is not None:
+                on_message(f"{path}: damaged part file, building that patch again")
+        else:
+            done.add(int(path.stem.split("_")[1]))
+    _describe_missing(ortho, mapper, grid, done, lambda i, result: _save_patch(_part_path(work_dir, i), *result),
+                      progress)
+
+
 def build_aerial_map(
     ortho: Orthophoto | OrthophotoSource,
     mapper: AerialMapper,
@@ -195,56 +286,47 @@ def build_aerial_map(
     on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
     """Build the aerial map of `ortho` (in memory, or a source read box by box) on the engine of
-    `mapper.aerial`. With `work_dir`, finished patches are kept there and reused on any engine
-    (damaged part files are built again, reported through `on_message`)."""
-    grid = tile_image(*ortho.size_px, ortho.meters_per_pixel, _corner_in_map_frame(ortho),
-                      mapper.aerial.patch_size_m, mapper.aerial.patch_overlap)
-    results: dict[int, tuple[PrimitiveSet, torch.Tensor]] = {}
-    if work_dir is not None:
-        key = _work_key(ortho, mapper.config)
-        key_file = work_dir / "key.txt"
-        if work_dir.exists() and (not key_file.is_file() or key_file.read_text() != key):
-            shutil.rmtree(work_dir)  # another orthophoto or config: nothing to resume
-        work_dir.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(key_file, key)
-        for path in sorted(work_dir.glob("patch_*.npz")):
-            loaded = _load_patch(path)
+    `mapper.aerial`, in memory. With `work_dir`, finished patches are kept there and reused on any
+    engine (damaged part files are built again, reported through `on_message`). For large areas
+    use `write_aerial_map`, which never holds the whole map."""
+    grid = _patch_grid(ortho, mapper)
+    if work_dir is None:
+        results: dict[int, tuple[PrimitiveSet, torch.Tensor]] = {}
+        _describe_missing(ortho, mapper, grid, set(), results.__setitem__, progress)
+        ordered = [results[i] for i in range(len(grid))]
+    else:
+        _build_parts(ortho, mapper, grid, work_dir, progress, on_message)
+        ordered = [_load_patch(_part_path(work_dir, i)) for i in range(len(grid))]
+        for i, loaded in enumerate(ordered):
             if loaded is None:
-                path.unlink()
-                if on_message is not None:
-                    on_message(f"{path}: damaged part file, building that patch again")
-            else:
-                results[int(path.stem.split("_")[1])] = loaded
-    todo = np.array([i for i in range(len(grid)) if i not in results], dtype=np.int64)
-    if progress is not None:
-        progress(len(results), len(grid))
-    block = mapper.aerial.batch_size
-    blocks = [todo[start : start + block] for start in range(0, len(todo), block)]
-    for indices, described in zip(blocks, described_blocks(ortho, grid, mapper, blocks)):
-        for i, result in zip(indices, described):
-            results[int(i)] = result
-            if work_dir is not None:
-                _save_patch(work_dir / f"patch_{int(i):06d}.npz", *result)
-        if progress is not None:
-            progress(len(results), len(grid))
-    ordered = [results[i] for i in range(len(grid))]
+                raise _damaged_part(_part_path(work_dir, i), "unreadable")
     return AerialMap(
         patches=grid,
         primitives=stack_primitive_sets([r[0] for r in ordered]),
         global_descriptors=torch.stack([r[1] for r in ordered]),
-        meters_per_pixel=ortho.meters_per_pixel,
-        origin_xy=ortho.origin_xy,
-        local_origin_xy=map_frame_origin(ortho),
-        image_size=ortho.size_px,
-        crs=ortho.crs,
-        config=mapper.config,
-        backends={
-            "segmenter": type(mapper.segmenter).__name__,
-            "describer": type(mapper.describer).__name__,
-            "global_describer": type(mapper.global_describer).__name__,
-        },
-        source=source or {},
+        **_map_fields(ortho, mapper, source),
     )
+
+
+def write_aerial_map(
+    ortho: Orthophoto | OrthophotoSource,
+    mapper: AerialMapper,
+    out: Path,
+    *,
+    source: dict[str, str] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    on_message: Callable[[str], None] | None = None,
+) -> AerialMap:
+    """Build the aerial map of `ortho` into the file `out` and return it opened from there (memory
+    mapped). Resumable through `out`.parts/ (see `build_aerial_map`); the file is written from the
+    part files one block of patches at a time, atomically, and the parts are removed after it."""
+    work_dir = out.with_name(out.name + ".parts")
+    grid = _patch_grid(ortho, mapper)
+    _build_parts(ortho, mapper, grid, work_dir, progress, on_message)
+    save_aerial_map_patches(out, grid, lambda i, names: _read_part(work_dir, i, names),
+                            **_map_fields(ortho, mapper, source))
+    shutil.rmtree(work_dir, ignore_errors=True)
+    return load_aerial_map(out)
 
 
 def build_map_file(
@@ -258,15 +340,10 @@ def build_map_file(
     progress: Callable[[int, int], None] | None = None,
     on_message: Callable[[str], None] | None = None,
 ) -> AerialMap:
-    """Orthophoto file or folder -> aerial map saved at `out`, resumable through `out`.parts/.
-    The orthophoto is read box by box (io/ortho_source.py)."""
+    """Orthophoto file or folder -> aerial map saved at `out` (`write_aerial_map`), resumable through
+    `out`.parts/, returned memory mapped from `out`. The orthophoto is read box by box
+    (io/ortho_source.py)."""
     mapper = AerialMapper.from_config(aerial, perception, primitives, device=device)
-    work_dir = out.with_name(out.name + ".parts")
     with open_orthophoto(ortho_path) as ortho:
-        aerial_map = build_aerial_map(
-            ortho, mapper, work_dir=work_dir, progress=progress, on_message=on_message,
-            source={"orthophoto": str(ortho.path.resolve())},
-        )
-    save_aerial_map(aerial_map, out)
-    shutil.rmtree(work_dir, ignore_errors=True)
-    return aerial_map
+        return write_aerial_map(ortho, mapper, out, progress=progress, on_message=on_message,
+                                source={"orthophoto": str(ortho.path.resolve())})
