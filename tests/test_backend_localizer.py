@@ -369,6 +369,31 @@ def test_gate_fraction_blocks_the_fix() -> None:
     assert len(result.final_hypotheses) == 0  # no final pass
 
 
+def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld() -> None:
+    world = World(seed=3, n_frames=360)
+    world.corrupt_submaps = set(range(6))  # 0-5 agree with each other on a pose 25 m off: a wrong fix
+    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher, online_covariance=True)
+    events = []
+    for submap in world.submaps():
+        events.append(loc.add_submap(submap))
+        if events[-1].fix_revoked:
+            assert loc.latest_estimate() == (None, None) and loc.state == "pre"
+    fixes = [e.submap_index for e in events if e.fix_committed]
+    revoked = [e.submap_index for e in events if e.fix_revoked]
+    b = loc.cfg.backend
+    # the submaps after the wrong fix match the truth, not its prediction: none of them agrees
+    assert revoked == [fixes[0] + b.fix_min_inliers] and len(fixes) == 2 and fixes[1] > revoked[0]
+    result = loc.finalize()
+    t = world.times
+    withheld = (t >= events[revoked[0]].time) & (t < events[fixes[1]].time)
+    assert withheld.any() and np.isnan(result.T_world_base_incremental[withheld]).all()
+    assert np.isnan(result.covariance_incremental[withheld]).all()
+    # the new fix is again judged by 0-5's wrong agreement, the submap after it outvotes them: recovered
+    late = t >= events[fixes[1] + 1].time
+    assert _xy_error(result.T_world_base_incremental[late], Trajectory(t[late], world.gt.poses[late])).max() < 3.0
+    assert result.localized and _xy_error(result.T_world_base, world.gt).max() < 3.0
+
+
 def test_offline_mode_localizes() -> None:
     world = World(seed=3, n_frames=200)
     world.corrupt_submaps = {2}

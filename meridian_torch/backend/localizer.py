@@ -13,6 +13,12 @@ States, per new ground submap:
   predicted from the last optimized pose carried forward by odometry; its candidates join the
   pool; CLIPPER + pose graph; accepted inliers are committed (the other candidates of their
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
+- The fix is checked by the submaps that follow it: once `fix_min_inliers` submaps have come
+  since the fix, fewer than `fix_min_inlier_fraction` of them with an accepted loop closure
+  **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
+  one, most). The online estimate is withheld from then on (NaN) and the localizer goes back to
+  "pre": the pool is rebuilt from the submaps' place-recognition candidates and the next fix
+  must pass the gate over every submap again.
 
 The online pose graph lives in iSAM2 from the fix on (`IncrementalPoseGraph`: each update adds
 the new frames and the changed loop closures). The online estimate at a frame = the anchor (last
@@ -132,6 +138,7 @@ class Localizer:
         self._online_graph = IncrementalPoseGraph(cfg.backend)  # started at the fix
         self.fix_submap_index: int | None = None
         self.fix_time: float | None = None
+        self._fix_position = 0  # submaps added before the fix submap
         self.events: list[LocalizerEvent] = []
         # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
         self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
@@ -293,6 +300,29 @@ class Localizer:
         self._attempt_cache = (key, len(self.submaps), fresh)
         return fresh
 
+    def _fix_refuted(self, sel: InlierSelection) -> bool:
+        """The submaps since the fix, once `fix_min_inliers` of them have come, fail its gate
+        fraction: too few of them have an accepted loop closure."""
+        b = self.cfg.backend
+        since = len(self.submaps) - 1 - self._fix_position
+        if since < b.fix_min_inliers:
+            return False
+        accepted = self._accepted(sel).submap_index
+        agreeing = int(torch.unique(accepted[accepted > self.fix_submap_index]).numel())
+        return agreeing < b.fix_min_inlier_fraction * since
+
+    def _revoke(self, n_nodes: int, available_time: float) -> None:
+        """Back to the global search: withhold the online estimate from `available_time` on and
+        rebuild the pool from every submap's place-recognition candidates."""
+        self.state = "pre"
+        self.fix_submap_index = self.fix_time = None
+        searched = [c for i, c in self.submap_hypotheses.items() if self.submap_matching_mode[i] == "place_recognition"]
+        self._set_pool(LoopClosureCandidates.concat(searched) if searched else LoopClosureCandidates.empty(), None)
+        self.archive = LoopClosureCandidates.empty()
+        self._online_graph = IncrementalPoseGraph(self.cfg.backend)
+        self._attempt_cache = None
+        self._updates.append(OnlineUpdate(available_time, np.full((3, 3), np.nan), n_nodes - 1, None))
+
     # ------------------------------------------------------------------ public API
     def add_submap(self, submap: GroundSubmap, available_time: float | None = None) -> LocalizerEvent:
         """Process one new submap; `available_time` = when it was complete (default its time).
@@ -308,7 +338,7 @@ class Localizer:
         self.submaps.append(submap)
         self._nodes.append(self._node_of(submap.time))
         n_nodes = self._node_of(available_time) + 1
-        attempted = committed = False
+        attempted = committed = revoked = False
         if self.state == "pre":
             with stage("place recognition"):
                 patches = self._matching.place_recognition_patches(submap)
@@ -332,6 +362,7 @@ class Localizer:
                     self._set_pool(fresh, sel2.edges)
                     self.state = "post"
                     self.fix_submap_index, self.fix_time = submap.index, available_time
+                    self._fix_position = len(self.submaps) - 1
                     self._anchor(fresh.select(sel2.inliers), n_nodes, available_time)
                     self._commit(sel2.inliers)
                     n_inliers = sel2.count
@@ -346,7 +377,10 @@ class Localizer:
             self.pool = LoopClosureCandidates.concat([self.pool, new])
             sel = self._pool_inliers()
             n_inliers = sel.count + len(self.archive)
-            if n_inliers:
+            if self._fix_refuted(sel):
+                revoked = True
+                self._revoke(n_nodes, available_time)
+            elif n_inliers:
                 self._anchor(self._accepted(sel), n_nodes, available_time)
                 self._commit(sel.inliers)
         event = LocalizerEvent(
@@ -360,12 +394,14 @@ class Localizer:
             attempted=attempted,
             fix_committed=committed,
             seconds=time.perf_counter() - start,
+            fix_revoked=revoked,
         )
         self.events.append(event)
         return event
 
     def online_estimate(self) -> np.ndarray:
-        """(N, 4, 4) T_world_base the system had online at every frame time (NaN before the fix).
+        """(N, 4, 4) T_world_base the system had online at every frame time (NaN before the fix and
+        after a revoked one).
 
         Frames after the latest update use that update (carried forward by odometry).
         """
@@ -374,9 +410,10 @@ class Localizer:
             return out
         update_times = np.array([u.available_time for u in self._updates])
         which = np.searchsorted(update_times, self.frame_times, side="right") - 1
+        anchors = np.stack([u.T_world_odom for u in self._updates])
         ok = which >= 0
-        anchors = np.stack([u.T_world_odom for u in self._updates])[which[ok]]
-        out[ok] = lift_se2(anchors @ self._odom_se2[ok], self.T_odom_base[ok])
+        ok[ok] = np.isfinite(anchors[which[ok], 0, 0])  # a revocation's update withholds the estimate
+        out[ok] = lift_se2(anchors[which[ok]] @ self._odom_se2[ok], self.T_odom_base[ok])
         return self._to_world(out)
 
     def online_covariances(self) -> np.ndarray:
@@ -405,7 +442,7 @@ class Localizer:
         (x, y, yaw) in world axes, or (None, None) before the fix. The covariance is the anchor
         frame's marginal carried along the odometry since (`propagate_covariance`; None without
         `online_covariance`)."""
-        if not self._updates:
+        if not self._updates or self.state == "pre":  # before the fix, or it was revoked
             return None, None
         update = self._updates[-1]
         k = len(self.frame_times) - 1

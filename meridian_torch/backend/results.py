@@ -44,6 +44,7 @@ class LocalizerEvent:
     attempted: bool  # a fix attempt ran
     fix_committed: bool  # the global fix was committed on this submap
     seconds: float
+    fix_revoked: bool = False  # the submaps since the fix failed its gate: back to the global search
 
 
 @dataclass(frozen=True)

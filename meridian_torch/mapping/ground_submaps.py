@@ -65,8 +65,8 @@ class SubmapTrigger:
     last_path_m: float | None = None
     spacing: SubmapSpacingConfig | None = None  # None: the cfg's submap_trigger_path_m / min_interval_s / min_path_m
 
-    def use_spacing(self, spacing: SubmapSpacingConfig) -> None:
-        """Space the following submaps by `spacing` (e.g. from the global fix on)."""
+    def use_spacing(self, spacing: SubmapSpacingConfig | None) -> None:
+        """Space the following submaps by `spacing` (e.g. from the global fix on; None: the cfg's)."""
         self.spacing = spacing
 
     def observe(self, tracker: SegmentTracker) -> None:

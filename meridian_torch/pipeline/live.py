@@ -132,8 +132,11 @@ class LiveLocalizer:
             with stage("localization"):
                 events.append(self.localizer.add_submap(submap, available_time=available_time))
         spacing = self.mapper.cfg.submap_spacing_after_fix
-        if spacing is not None and any(e.fix_committed for e in events):
-            self.mapper.trigger.use_spacing(spacing)
+        if spacing is not None and events:
+            if events[-1].state == "post" and any(e.fix_committed for e in events):
+                self.mapper.trigger.use_spacing(spacing)
+            elif events[-1].state == "pre" and any(e.fix_revoked for e in events):
+                self.mapper.trigger.use_spacing(None)
         T_world_base, covariance = self.localizer.latest_estimate()
         return LiveEstimate(float(self.localizer.frame_times[-1]), T_world_base, covariance, self.localizer.state,
                             tuple(events))

@@ -195,6 +195,7 @@ def write_outputs(
                 "attempted",
                 "fix_committed",
                 "seconds",
+                "fix_revoked",
             ],
             [
                 [
@@ -208,6 +209,7 @@ def write_outputs(
                     int(e.attempted),
                     int(e.fix_committed),
                     f"{e.seconds:.4f}",
+                    int(e.fix_revoked),
                 ]
                 for e in result.events
             ],
