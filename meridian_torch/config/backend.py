@@ -53,9 +53,13 @@ class BackendConfig(StrictModel):
         description="gate 1: pre-fix inlier loop closures needed before a fix attempt (a re-match of all "
         "submaps; reference 1): fewer let chance-consistent candidates seed wrong fixes",
     )
-    fix_min_inliers: int = Field(default=6, ge=1, description="[paper] global fix: >= 6 inlier loop closures")
+    fix_min_inliers: int = Field(
+        default=6, ge=1, description="[paper] global fix: >= 6 inlier loop closures; also how many submaps after "
+        "the fix are awaited before they judge it"
+    )
     fix_min_inlier_fraction: float = Field(
-        default=0.5, gt=0, le=1, description="[paper] ... and inliers >= this fraction of the submaps so far"
+        default=0.5, gt=0, le=1, description="[paper] ... and inliers >= this fraction of the submaps so far; the "
+        "fix is revoked when fewer than this fraction of the submaps since it have an accepted loop closure"
     )
     commit_accepted_inliers: bool = Field(
         default=True, description="after the fix, drop the alternatives of submaps that have an inlier"
