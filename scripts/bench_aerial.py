@@ -11,6 +11,14 @@ of a 1000 m image: 33 x 33 = 1089). --geotiff PATH builds from that file instead
 to measure the memory of reading a large orthophoto without building all of it.
 --write-geotiff PATH --tile-km SIDE only writes a SIDE x SIDE km tiled GeoTIFF made by repeating
 the rendered orthophoto (written one strip at a time), for those memory measurements.
+--assembly KM2 [KM2 ...] measures the last step of build-map, writing the map file from the part
+files, without building large maps: the (--size-m) map is built once keeping its part files, and
+for each area a part folder of that area's patch count is made by hard-linking them cyclically
+(patch i is part i mod n: as many distinct patches, each a real one), keyed to the same GeoTIFF
+with the area's image size; then, each in a fresh process, the in-memory writer (all parts loaded,
+stacked, `save_aerial_map`: build-map before issue 18's streaming) and build-map's own
+(`write_aerial_map`: the file written patch by patch, then opened memory mapped) write that map;
+their peak RSS (VmHWM), time and whether the two files are byte for byte the same are printed.
 
 Stages of the single-process build are timed from this script without touching library code: the
 mapper's segmenter, segment describer and global describer are wrapped in timing proxies, and
@@ -34,8 +42,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import filecmp
+import json
 import os
 import resource
+import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -47,8 +59,9 @@ import torch
 
 import meridian_torch.mapping.aerial_map as aerial_map_module
 from meridian_torch.config import load_config
+from meridian_torch.io.map_file import save_aerial_map
 from meridian_torch.io.ortho_source import OrthophotoSource, open_orthophoto
-from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
+from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map, write_aerial_map
 from meridian_torch.mapping.tiling import tile_image
 from meridian_torch.runtime import peak_rss_mib
 
@@ -176,8 +189,15 @@ def main(argv: list[str] | None = None) -> int:
                          "time and peak memory over the whole orthophoto")
     ap.add_argument("--write-geotiff", type=Path, default=None, help="only write a tiled GeoTIFF (--tile-km)")
     ap.add_argument("--tile-km", type=float, default=2.0, help="side of the --write-geotiff image, km")
+    ap.add_argument("--assembly", type=float, nargs="+", default=None, metavar="KM2",
+                    help="measure writing the map file from the part files of maps of these areas (km^2)")
+    ap.add_argument("--assembly-run", choices=["memory", "patchwise"], default=None,
+                    help=argparse.SUPPRESS)  # one --assembly measurement, in a fresh process
+    ap.add_argument("--assembly-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.assembly_run is not None:
+        return _assembly_run(args, load_config(args.config, args.set))
 
     overrides = [f"sim.world.size_m=[{args.size_m},{args.size_m}]", f"sim.ortho.meters_per_pixel={args.mpp}", *args.set]
     cfg = load_config(args.config, overrides)
@@ -201,7 +221,73 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"wrote {ortho_path}: {side_px}x{side_px} px = {(side_px * args.mpp / 1000) ** 2:.2f} km^2, "
                       f"{ortho_path.stat().st_size / 2**20:.0f} MiB ({time.perf_counter() - t0:.0f} s)")
                 return 0
+        if args.assembly is not None:
+            return _assembly(args, cfg, ortho_path, Path(tmp))
         return _bench(args, cfg, overrides, ortho_path, time.perf_counter() - t0)
+
+
+def _assembly(args: argparse.Namespace, cfg, ortho_path: Path, tmp: Path) -> int:
+    """--assembly: the part files of a small map, replicated to each area, written by both writers."""
+    mapper = AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives)
+    t0 = time.perf_counter()
+    with open_orthophoto(ortho_path) as ortho:
+        built = build_aerial_map(ortho, mapper, work_dir=tmp / "small.parts")
+    parts = sorted((tmp / "small.parts").glob("patch_*.npz"))
+    part_kib = sum(p.stat().st_size for p in parts) / len(parts) / 1024
+    map_kib = (sum(v.nbytes for v in vars(built.primitives).values()) + built.global_descriptors.nbytes) / 1024
+    print(f"built {len(parts)} patches of {ortho_path.name} in {time.perf_counter() - t0:.0f} s: "
+          f"{part_kib:.0f} KiB per part file, {map_kib / len(parts):.0f} KiB of map arrays per patch", flush=True)
+    del built
+    for km2 in args.assembly:
+        side_px = int(round(np.sqrt(km2) * 1000.0 / args.mpp))
+        run_dir = tmp / f"{km2:g}km2"
+        work_dir = run_dir / "patchwise.mtm.parts"  # where write_aerial_map looks for them
+        work_dir.mkdir(parents=True)
+        with open_orthophoto(ortho_path) as ortho:
+            key = aerial_map_module._work_key(dataclasses.replace(ortho, size_px=(side_px, side_px)), mapper.config)
+        (work_dir / "key.txt").write_text(key)
+        n = len(tile_image(side_px, side_px, args.mpp, (0.0, 0.0), cfg.aerial_map.patch_size_m,
+                           cfg.aerial_map.patch_overlap))
+        for i in range(n):
+            os.link(parts[i % len(parts)], work_dir / f"patch_{i:06d}.npz")
+        rows = {}
+        for writer in ("memory", "patchwise"):  # patchwise last: it removes the parts
+            command = [sys.executable, str(Path(__file__).resolve()), "--geotiff", str(ortho_path), "--mpp",
+                       str(args.mpp), "--config", str(args.config), *[a for s in args.set for a in ("--set", s)],
+                       "--threads", "1", "--tile-km", str(side_px * args.mpp / 1000.0), "--assembly-run", writer,
+                       "--assembly-out", str(run_dir / f"{writer}.mtm")]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode != 0:
+                print(done.stderr, file=sys.stderr)
+                return done.returncode
+            rows[writer] = json.loads(done.stdout.splitlines()[-1])
+        same = filecmp.cmp(run_dir / "memory.mtm", run_dir / "patchwise.mtm", shallow=False)
+        print(f"\n{km2:g} km^2, {n} patches, map file {rows['memory']['file_mib']:.0f} MiB; files identical: {same}")
+        for writer, row in rows.items():
+            print(f"  {writer:<9} peak RSS {row['peak_mib']:6.0f} MiB ({row['before_mib']:.0f} before the "
+                  f"write: imports, mapper), {row['seconds']:5.1f} s, load average {row['load']:.1f}")
+        shutil.rmtree(run_dir)
+    return 0
+
+
+def _assembly_run(args: argparse.Namespace, cfg) -> int:
+    """One --assembly writer in this (fresh) process; prints a JSON line."""
+    mapper = AerialMapper.from_config(cfg.aerial_map, cfg.perception, cfg.primitives)
+    out: Path = args.assembly_out
+    side_px = int(round(args.tile_km * 1000.0 / args.mpp))
+    with open_orthophoto(args.geotiff) as ortho:
+        enlarged = dataclasses.replace(ortho, size_px=(side_px, side_px))
+        source = {"orthophoto": str(args.geotiff.resolve())}
+        before, t0 = peak_rss_mib(), time.perf_counter()
+        if args.assembly_run == "memory":
+            work_dir = out.with_name("patchwise.mtm.parts")
+            save_aerial_map(build_aerial_map(enlarged, mapper, work_dir=work_dir, source=source), out)
+        else:
+            write_aerial_map(enlarged, mapper, out, source=source)
+        seconds = time.perf_counter() - t0
+    print(json.dumps({"before_mib": before, "peak_mib": peak_rss_mib(), "seconds": seconds,
+                      "file_mib": out.stat().st_size / 2**20, "load": os.getloadavg()[0]}))
+    return 0
 
 
 def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path, t_world: float) -> int:
