@@ -23,9 +23,9 @@ States, per new ground submap:
 The online pose graph lives in iSAM2 from the fix on (`IncrementalPoseGraph`: each update adds
 the new frames and the changed loop closures). The online estimate at a frame = the anchor (last
 optimized pose of the latest update available at that frame's time) carried forward by odometry.
-`finalize` solves the final pool once more over
-every frame and, with `final_rematch`, re-matches every submap with the rotation prior near that
-trajectory (offline pass 2), keeping pass 2 when it passes the fix gate.
+`finalize` solves the final pool once more over every frame and, with `final_rematch`, re-matches
+every submap with the rotation prior near that trajectory (offline pass 2), keeping pass 2 when
+it passes the fix gate.
 
 Positions are worked in the aerial map's frame (world minus `aerial_map.local_origin_xy`, small
 numbers that float32 matching keeps exact); every result is returned in world coordinates
