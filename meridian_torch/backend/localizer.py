@@ -399,6 +399,11 @@ class Localizer:
         self.events.append(event)
         return event
 
+    def _update_of_frames(self) -> np.ndarray:
+        """(N,) index of the online update each frame's estimate comes from (-1 before the first)."""
+        update_times = np.array([u.available_time for u in self._updates])
+        return np.searchsorted(update_times, self.frame_times, side="right") - 1
+
     def online_estimate(self) -> np.ndarray:
         """(N, 4, 4) T_world_base the system had online at every frame time (NaN before the fix and
         after a revoked one).
@@ -408,8 +413,7 @@ class Localizer:
         out = np.full((len(self.frame_times), 4, 4), np.nan)
         if not self._updates:
             return out
-        update_times = np.array([u.available_time for u in self._updates])
-        which = np.searchsorted(update_times, self.frame_times, side="right") - 1
+        which = self._update_of_frames()
         anchors = np.stack([u.T_world_odom for u in self._updates])
         ok = which >= 0
         ok[ok] = np.isfinite(anchors[which[ok], 0, 0])  # a revocation's update withholds the estimate
@@ -425,8 +429,7 @@ class Localizer:
         out = np.full((len(self.frame_times), 3, 3), np.nan)
         if not self._updates:
             return out
-        update_times = np.array([u.available_time for u in self._updates])
-        which = np.searchsorted(update_times, self.frame_times, side="right") - 1
+        which = self._update_of_frames()
         for k in np.flatnonzero(which >= 0):
             update = self._updates[which[k]]
             if update.covariance is None:

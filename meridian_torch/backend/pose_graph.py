@@ -70,12 +70,7 @@ def optimize_pose_graph(
 
     T_odom_base, prior_nodes, T_world_base_priors = _checked(T_odom_base, prior_nodes, T_world_base_priors)
     n = len(T_odom_base)
-    odom_noise, prior_noise = _noise_models(cfg)
-    graph = gtsam.NonlinearFactorGraph()
-    _add_odometry(graph, T_odom_base, 0, odom_noise)
-    for node, T in zip(prior_nodes, T_world_base_priors):
-        graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
-
+    graph = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, cfg)
     T_world_odom = align_odometry(T_world_base_priors, T_odom_base[prior_nodes])
     initial = gtsam.Values()
     for k, T in enumerate(T_world_odom @ T_odom_base):
@@ -155,22 +150,19 @@ class IncrementalPoseGraph:
                 self._priors[key] = int(indices[first_prior + i])
             self._settle(result)
         self._n = n
+        T_last = self._pose(n - 1)
         cov = None
         if covariance:
-            cov = _world_axes(self._isam.marginalCovariance(n - 1)[None], np.array([yaw_of(self._pose(n - 1))]))[0]
-        return self._pose(n - 1), cov
+            cov = _world_axes(self._isam.marginalCovariance(n - 1)[None], np.array([yaw_of(T_last)]))[0]
+        return T_last, cov
 
     def _start(self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
                keys: list[tuple[int, bytes]]) -> None:
         import gtsam
 
         sol = optimize_pose_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg)
-        odom_noise, prior_noise = _noise_models(self.cfg)
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        _add_odometry(graph, T_odom_base, 0, odom_noise)
-        first_prior = graph.size()
-        for node, T in zip(prior_nodes, T_world_base_priors):
-            graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
+        graph, values = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg), gtsam.Values()
+        first_prior = len(T_odom_base) - 1  # after the odometry factors
         for k, T in enumerate(sol.T_world_base):
             values.insert(k, _pose2(T))
         params = gtsam.ISAM2Params()
@@ -223,6 +215,19 @@ def _noise_models(cfg: BackendConfig):
         np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
     )
     return odom, prior
+
+
+def _factor_graph(T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
+                  cfg: BackendConfig):
+    """The graph's factors: the odometry steps (nodes 0..N-1, first), then one prior per loop closure."""
+    import gtsam
+
+    odom_noise, prior_noise = _noise_models(cfg)
+    graph = gtsam.NonlinearFactorGraph()
+    _add_odometry(graph, T_odom_base, 0, odom_noise)
+    for node, T in zip(prior_nodes, T_world_base_priors):
+        graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
+    return graph
 
 
 def _add_odometry(graph, T_odom_base: np.ndarray, first_node: int, noise) -> None:
