@@ -430,9 +430,9 @@ def test_rewriting_a_folder_drops_the_previous_runs_optional_outputs(run, tmp_pa
 
 def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
     from meridian_torch.config import EvaluationConfig
-    from meridian_torch.evaluation.trajectory_metrics import evaluate_run, read_covariances
+    from meridian_torch.evaluation.trajectory_metrics import evaluate_run
     from meridian_torch.io.poses import parse_tum
-    from meridian_torch.io.results import read_outputs
+    from meridian_torch.io.results import read_covariances, read_outputs
     from meridian_torch.pipeline.outputs import write_outputs
 
     world, _loc, events, result = run
@@ -502,8 +502,8 @@ def test_outputs_follow_the_format_and_evaluate(run, tmp_path) -> None:
 def test_covariance_incremental_csv_round_trips(run, fix_fraction: float, seed: int) -> None:
     """Whatever frame the fix comes at and whatever the values, covariance_incremental.csv has one
     row per frame of trajectory_incremental.tum, at its timestamps, with the values exactly."""
-    from meridian_torch.evaluation.trajectory_metrics import read_covariances
     from meridian_torch.io.poses import read_tum
+    from meridian_torch.io.results import read_covariances
     from meridian_torch.pipeline.outputs import write_outputs
 
     _world, _loc, _events, result = run

@@ -6,9 +6,9 @@
 - fraction of frames localized (frames with an online estimate / all frames), distance (ground
   truth path length) and time from the first frame to the first online estimate.
 - covariance consistency of the final trajectory (`covariance.csv`, world axes) and of the
-  incremental one (`covariance_incremental.csv`): mean NEES e^T S^-1 e of e = (dx, dy, wrap(dyaw)) over the poses (a consistent estimator gives 3), of the
-  position alone (2), and the fraction of position errors inside the 2-sigma ellipse (1 - e^-2 =
-  86.5 %). The errors are the unaligned world-frame ones, as the covariance is in world axes.
+  incremental one (`covariance_incremental.csv`): mean NEES e^T S^-1 e of e = (dx, dy,
+  wrap(dyaw)) over the poses (a consistent estimator gives 3), of the position alone (2), and the
+  fraction of position errors inside the 2-sigma ellipse (1 - e^-2 = 86.5 %). The errors are the unaligned world-frame ones, as the covariance is in world axes.
 - registration success top-k: per submap, its hypotheses ranked by probability (over all patches it
   was matched against); success@k if any of the first k lies within the translation and rotation
   thresholds of the ground-truth T_world_base at the submap time (strict <).
@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import dataclass
@@ -26,7 +25,6 @@ from typing import Any
 import numpy as np
 
 from meridian_torch.config import EvaluationConfig
-from meridian_torch.errors import SequenceFormatError
 from meridian_torch.geometry.planar import scalar_yaw_of, wrap_angle
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.atomic import write_text_atomic
@@ -35,6 +33,7 @@ from meridian_torch.io.results import (
     COVARIANCE_INCREMENTAL_CSV,
     METRICS_JSON,
     RunOutputs,
+    read_covariances,
     read_outputs,
 )
 
@@ -48,7 +47,6 @@ __all__ = [
     "covariance_consistency",
     "evaluate_run",
     "localization_metrics",
-    "read_covariances",
     "registration_success",
     "trajectory_errors",
 ]
@@ -162,29 +160,6 @@ def covariance_consistency(
         "position_nees_mean": float(position_nees.mean()),
         "position_within_2sigma": float(np.mean(position_nees <= 4.0)),
     }
-
-
-_COVARIANCE_COLUMNS = ["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"]
-
-
-def read_covariances(path: str | Path, est: Trajectory) -> np.ndarray:
-    """(N, 3, 3) covariances of `est`'s poses from a `covariance.csv` or `covariance_incremental.csv`
-    (io.results), one row per pose."""
-    path = Path(path)
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows or rows[0] != _COVARIANCE_COLUMNS:
-        raise SequenceFormatError(f"{path}: header {rows[:1]}, expected {_COVARIANCE_COLUMNS}")
-    try:
-        values = np.array([[float(v) for v in r] for r in rows[1:]], dtype=np.float64).reshape(-1, 7)
-    except ValueError as exc:
-        raise SequenceFormatError(f"{path}: a row is not 7 numbers ({exc})") from exc
-    if len(values) != len(est) or not np.allclose(values[:, 0], est.timestamps, rtol=0, atol=1e-6):
-        raise SequenceFormatError(
-            f"{path}: {len(values)} rows whose timestamps do not match the {len(est)} poses of the trajectory"
-        )
-    xx, xy, xyaw, yy, yyaw, yawyaw = values[:, 1:].T
-    return np.stack([np.c_[xx, xy, xyaw], np.c_[xy, yy, yyaw], np.c_[xyaw, yyaw, yawyaw]], axis=1)
 
 
 def registration_success(

@@ -34,6 +34,7 @@ from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.io.poses import read_tum
 
 __all__ = [
+    "COVARIANCE_COLUMNS",
     "COVARIANCE_CSV",
     "COVARIANCE_INCREMENTAL_CSV",
     "FINAL_TUM",
@@ -46,6 +47,7 @@ __all__ = [
     "SUBMAPS_CSV",
     "SUMMARY_JSON",
     "RunOutputs",
+    "read_covariances",
     "read_outputs",
     "to_latlon",
 ]
@@ -54,6 +56,7 @@ FINAL_TUM = "trajectory.tum"
 INCREMENTAL_TUM = "trajectory_incremental.tum"
 COVARIANCE_CSV = "covariance.csv"
 COVARIANCE_INCREMENTAL_CSV = "covariance_incremental.csv"
+COVARIANCE_COLUMNS = ["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"]  # both covariance files
 LOOP_CLOSURES_CSV = "loop_closures.csv"
 HYPOTHESES_CSV = "hypotheses.csv"
 SUBMAPS_CSV = "submaps.csv"
@@ -117,3 +120,23 @@ def read_outputs(out_dir: str | Path) -> RunOutputs:
     return RunOutputs(
         summary, final, incremental, _read_table(out / LOOP_CLOSURES_CSV), _read_table(out / HYPOTHESES_CSV)
     )
+
+
+def read_covariances(path: str | Path, est: Trajectory) -> np.ndarray:
+    """(N, 3, 3) covariances of `est`'s poses from a `covariance.csv` or `covariance_incremental.csv`
+    (one row per pose; `COVARIANCE_COLUMNS`)."""
+    path = Path(path)
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or rows[0] != COVARIANCE_COLUMNS:
+        raise SequenceFormatError(f"{path}: header {rows[:1]}, expected {COVARIANCE_COLUMNS}")
+    try:
+        values = np.array([[float(v) for v in r] for r in rows[1:]], dtype=np.float64).reshape(-1, 7)
+    except ValueError as exc:
+        raise SequenceFormatError(f"{path}: a row is not 7 numbers ({exc})") from exc
+    if len(values) != len(est) or not np.allclose(values[:, 0], est.timestamps, rtol=0, atol=1e-6):
+        raise SequenceFormatError(
+            f"{path}: {len(values)} rows whose timestamps do not match the {len(est)} poses of the trajectory"
+        )
+    xx, xy, xyaw, yy, yyaw, yawyaw = values[:, 1:].T
+    return np.stack([np.c_[xx, xy, xyaw], np.c_[xy, yy, yyaw], np.c_[xyaw, yyaw, yawyaw]], axis=1)

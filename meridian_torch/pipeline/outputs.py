@@ -20,6 +20,7 @@ from meridian_torch.io.atomic import write_text_atomic
 from meridian_torch.io.ortho import Orthophoto
 from meridian_torch.io.poses import write_tum
 from meridian_torch.io.results import (
+    COVARIANCE_COLUMNS,
     COVARIANCE_CSV,
     COVARIANCE_INCREMENTAL_CSV,
     FINAL_TUM,
@@ -80,7 +81,7 @@ def _covariance_csv(times: np.ndarray, covariance: np.ndarray) -> str:
         [f"{t:.9f}", *(_num(c[k, i, j]) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
         for k, t in enumerate(times)
     ]
-    return _csv(["timestamp", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw"], rows)
+    return _csv(COVARIANCE_COLUMNS, rows)
 
 
 def _candidate_rows(c: LoopClosureCandidates) -> list[list[object]]:
