@@ -8,7 +8,8 @@
 - covariance consistency of the final trajectory (`covariance.csv`, world axes) and of the
   incremental one (`covariance_incremental.csv`): mean NEES e^T S^-1 e of e = (dx, dy,
   wrap(dyaw)) over the poses (a consistent estimator gives 3), of the position alone (2), and the
-  fraction of position errors inside the 2-sigma ellipse (1 - e^-2 = 86.5 %). The errors are the unaligned world-frame ones, as the covariance is in world axes.
+  fraction of position errors inside the 2-sigma ellipse (1 - e^-2 = 86.5 %). The errors are
+  the unaligned world-frame ones, as the covariance is in world axes.
 - registration success top-k: per submap, its hypotheses ranked by probability (over all patches it
   was matched against); success@k if any of the first k lies within the translation and rotation
   thresholds of the ground-truth T_world_base at the submap time (strict <).
