@@ -5,7 +5,7 @@ Runs `localize_sequence` (ground mapping frame by frame, every submap localized 
 then the final offline pass) on one sequence folder and prints:
 - frames/s and the real-time factor (sequence duration / wall time), online (frames and submaps
   as they come) and in total (with the final pass);
-- the peak resident memory of the process;
+- the peak resident memory of the process, and which stages raised it;
 - seconds per stage and sub-stage (perception, 3D observations, tracking, submaps, place
   recognition, associations, affinity, particles, registration, verification, consistency,
   pose graph, ...), as recorded by `meridian_torch.core.timing`;
@@ -213,8 +213,8 @@ def run_child(args: argparse.Namespace) -> dict:
         "threads": torch.get_num_threads(),
         "pipeline_seconds": run.seconds,
         # a source tree without stage marks records nothing: report its pipeline seconds only
-        "stages": {"seconds": stage_times.seconds, "calls": stage_times.calls} if stage_times and stage_times.calls
-        else None,
+        "stages": {"seconds": stage_times.seconds, "calls": stage_times.calls,
+                   "peak_raised_mib": stage_times.peak_raised_mib} if stage_times and stage_times.calls else None,
         "localized": bool(run.result.localized),
         "fix_submap": run.result.fix_submap_index,
         "metrics": metrics,
@@ -287,10 +287,34 @@ class _FirstFrames:
         self.source.require_odometry_without_gaps(max_gap_s, self.n if n_frames is None else min(n_frames, self.n))
 
 
+def _peak_stage_times():
+    """A stage table that also credits every rise of the process's peak RSS to the stage that had
+    just ended (the innermost one that ran while it rose): `peak_raised_mib` per stage path."""
+    import resource
+
+    from meridian_torch.core.timing import StageTimes
+
+    class PeakStageTimes(StageTimes):
+        def __init__(self) -> None:
+            super().__init__()
+            self.peak_raised_mib: dict[str, float] = {}
+            self._peak = 0.0
+
+        def add(self, path: str, seconds: float) -> None:
+            super().add(path, seconds)
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+            with self._lock:
+                if peak > self._peak:
+                    self.peak_raised_mib[path] = self.peak_raised_mib.get(path, 0.0) + peak - self._peak
+                    self._peak = peak
+
+    return PeakStageTimes()
+
+
 def _with_stages(record_stages, fn):
     if record_stages is None:
         return fn(), None
-    with record_stages() as times:
+    with record_stages(_peak_stage_times()) as times:
         run = fn()
     return run, times
 
@@ -368,6 +392,15 @@ def report(results: list[tuple[str, dict]]) -> str:
             for i, row in enumerate(r["passes"]):
                 lines.append(f"| {i + 1} | {row['frames']} | {row['drive_s']:.0f} | {row['wall_s']:.0f} | "
                              f"{row['frames_per_s']:.2f} | {row['rss_mib']:.0f} |")
+            lines.append("")
+    for label, r in results:
+        raised = sorted(((r.get("stages") or {}).get("peak_raised_mib") or {}).items(), key=lambda kv: -kv[1])
+        if raised:
+            lines.append(f"where the peak RSS rose, {label} (MiB the peak rose by while each stage ran, "
+                         "credited to the innermost stage; the rest of the peak is the process before):")
+            lines.append("| stage | peak raised MiB |")
+            lines.append("|---|---|")
+            lines += [f"| {path} | {mib:.0f} |" for path, mib in raised[:8]]
             lines.append("")
     for label, r in results:
         lines.append(f"time per stage, {label} ({r['source']}):")
