@@ -26,7 +26,9 @@ def _segment(sid, points, occluded=None, status=SegmentStatus.INACTIVE, last_see
     seg = TrackedSegment(sid, status, np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64),
                          np.unique(voxel_hash(occluded, 0.1)) if len(occluded) else np.zeros(0, np.int64),
                          d, 1, last_seen, last_seen, 2, np.zeros(3))
-    tracker._set_points(seg, np.asarray(points, dtype=np.float64))
+    points = np.asarray(points, dtype=np.float64)
+    keys, first = np.unique(voxel_hash(points, 0.1), return_index=True)
+    tracker._set_points(seg, keys, points[first], voxel_hash(points[first], 0.25))
     return seg
 
 

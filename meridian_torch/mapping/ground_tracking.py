@@ -23,6 +23,12 @@ Segment clouds are kept on the `segment_voxel_m` lattice: each voxel keeps the f
 fell into it (the reference re-voxelizes with a mean; keeping one point lets a segment grow in
 O(new points) with sorted int64 voxel keys). Occluded points are voxel keys; an occluded voxel
 is cleared when a real point is within `unocclude_dist_m` of its centre.
+
+Speed (the tracker runs on the main thread for every frame): a frame's points are hashed once
+per lattice and grouped by observation with one sort; a voxel's point never changes once set,
+so an occluded voxel that survived is only tested again against the voxels added since, and new
+occluded voxels against the whole cloud; centroid and extent are computed when first read after
+the cloud changed, and merging reads them only for pairs whose bounding boxes allow it.
 """
 
 from __future__ import annotations
@@ -42,14 +48,16 @@ from meridian_torch.mapping.ground_observations import (
     voxel_unhash,
 )
 
-__all__ = ["SegmentStatus", "TrackedSegment", "SegmentTracker", "sorted_overlap", "association_scores"]
+__all__ = ["SegmentStatus", "TrackedSegment", "SegmentTracker", "sorted_overlap", "association_scores", "group_unique"]
 
 _INVALID = 1e9
 _NO_ASSOCIATION = 1.0
-# hash offsets of the 27 voxels around a voxel (x, y, z fields of `voxel_hash`)
+# hash offsets of the 27 voxels around a voxel (x, y, z fields of `voxel_hash`); symmetric
 _NEIGHBOUR_OFFSETS = np.array(
     [(dx << 42) + (dy << 21) + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], dtype=np.int64
 )
+# margin of the box test before merging reads centroids and extents (their rounding is far smaller)
+_BOX_SLACK_M = 1e-3
 
 
 class SegmentStatus(IntEnum):
@@ -75,28 +83,65 @@ class TrackedSegment:
     last_seen: float
     sightings: int
     last_camera_xyz: np.ndarray  # (3,)
-    centroid: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    max_extent: float = 0.0
     lo: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))  # bounding box of `points`
     hi: np.ndarray = field(default_factory=lambda: np.full(3, -np.inf))
+    _shape: tuple[np.ndarray, float] | None = field(default=None, repr=False)  # (centroid, max_extent) cache
 
     @property
     def descriptor(self) -> torch.Tensor:
         return torch.nn.functional.normalize(self.descriptor_sum, dim=0)
 
+    @property
+    def centroid(self) -> np.ndarray:
+        return self._cached_shape()[0]
+
+    @property
+    def max_extent(self) -> float:
+        """Largest extent of the points along their principal axes."""
+        return self._cached_shape()[1]
+
+    def cloud_changed(self) -> None:
+        """Forget centroid and extent; whoever changes `points` calls it."""
+        self._shape = None
+
+    def _cached_shape(self) -> tuple[np.ndarray, float]:
+        if self._shape is None:
+            centroid = self.points.mean(axis=0) if len(self.points) else np.zeros(3)
+            self._shape = (centroid, _pca_extent(self.points))
+        return self._shape
+
     def occluded_points(self, voxel_m: float) -> np.ndarray:
         return voxel_unhash(self.occluded_keys, voxel_m)
+
+
+def _in_sorted(values: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+    """(N,) whether each of `values` is in the sorted array `sorted_keys`."""
+    if len(sorted_keys) == 0:
+        return np.zeros(len(values), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, values), len(sorted_keys) - 1)
+    return sorted_keys[pos] == values
+
+
+def _insert_sorted(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Sorted union of a sorted array and sorted keys it does not hold."""
+    return np.insert(sorted_keys, np.searchsorted(sorted_keys, new), new)
 
 
 def sorted_overlap(a: np.ndarray, b: np.ndarray) -> int:
     """Number of common elements of two sorted unique int64 arrays."""
     if len(a) > len(b):
         a, b = b, a
-    if len(a) == 0:
-        return 0
-    pos = np.searchsorted(b, a)
-    pos[pos == len(b)] = 0
-    return int((b[pos] == a).sum())
+    return int(_in_sorted(a, b).sum())
+
+
+def group_unique(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`np.unique(return_index=True)` of every group's keys in one sort: (keys, groups, index of
+    each key's first occurrence), sorted by group, then key."""
+    order = np.lexsort((keys, groups))  # stable: a run starts at its first occurrence
+    k, g = keys[order], groups[order]
+    first = np.ones(len(k), dtype=bool)
+    first[1:] = (k[1:] != k[:-1]) | (g[1:] != g[:-1])
+    return k[first], g[first], order[first]
 
 
 def association_scores(iom: np.ndarray, cosine: np.ndarray, cfg: GroundTrackingConfig) -> np.ndarray:
@@ -127,62 +172,65 @@ class SegmentTracker:
 
     # ------------------------------------------------------------------ segment geometry
 
-    def _set_points(self, seg: TrackedSegment, points: np.ndarray) -> None:
-        """Replace a segment's cloud (voxelized on the segment lattice, first point per voxel)."""
-        keys = voxel_hash(points, self.cfg.segment_voxel_m)
-        keys, first = np.unique(keys, return_index=True)
-        seg.points, seg.keys = points[first], keys
-        self._refresh(seg)
+    def _set_points(self, seg: TrackedSegment, keys: np.ndarray, points: np.ndarray, coarse: np.ndarray) -> None:
+        """Replace a segment's cloud: sorted unique voxel `keys`, the first point per voxel, and
+        the points' keys at iom_voxel_m."""
+        seg.points, seg.keys = points, keys
+        self._refresh(seg, coarse)
 
-    def _add_points(self, seg: TrackedSegment, points: np.ndarray) -> None:
-        keys = voxel_hash(points, self.cfg.segment_voxel_m)
-        keys, first = np.unique(keys, return_index=True)
-        pos = np.searchsorted(seg.keys, keys)
-        new = (pos == len(seg.keys)) | (seg.keys[np.minimum(pos, len(seg.keys) - 1)] != keys)
-        if new.any():
-            added = points[first[new]]
-            seg.keys = np.insert(seg.keys, pos[new], keys[new])
-            seg.points = np.insert(seg.points, pos[new], added, axis=0)
+    def _add_points(self, seg: TrackedSegment, keys: np.ndarray, points: np.ndarray,
+                    coarse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Add the voxels the segment lacks (arguments as `_set_points`); returns their keys and points."""
+        new = ~_in_sorted(keys, seg.keys)
+        keys, points = keys[new], points[new]
+        if len(keys):
+            pos = np.searchsorted(seg.keys, keys)
+            seg.keys = np.insert(seg.keys, pos, keys)
+            seg.points = np.insert(seg.points, pos, points, axis=0)
             # incremental: merge the new coarse keys into the sorted set, grow the box
-            coarse = np.unique(voxel_hash(added, self.cfg.iom_voxel_m))
-            at = np.searchsorted(seg.iom_keys, coarse)
-            fresh = (at == len(seg.iom_keys)) | (seg.iom_keys[np.minimum(at, len(seg.iom_keys) - 1)] != coarse)
-            seg.iom_keys = np.insert(seg.iom_keys, at[fresh], coarse[fresh])
-            seg.lo, seg.hi = np.minimum(seg.lo, added.min(axis=0)), np.maximum(seg.hi, added.max(axis=0))
-            self._shape(seg)
+            coarse = np.unique(coarse[new])
+            seg.iom_keys = _insert_sorted(seg.iom_keys, coarse[~_in_sorted(coarse, seg.iom_keys)])
+            seg.lo, seg.hi = np.minimum(seg.lo, points.min(axis=0)), np.maximum(seg.hi, points.max(axis=0))
+            seg.cloud_changed()
+        return keys, points
 
-    def _refresh(self, seg: TrackedSegment) -> None:
-        """Recompute the derived fields after the cloud was replaced."""
-        seg.iom_keys = np.unique(voxel_hash(seg.points, self.cfg.iom_voxel_m))
+    def _refresh(self, seg: TrackedSegment, coarse: np.ndarray | None = None) -> None:
+        """Recompute the derived fields after the cloud was replaced (`coarse`: its IoM keys, if known)."""
+        seg.iom_keys = np.unique(voxel_hash(seg.points, self.cfg.iom_voxel_m) if coarse is None else coarse)
         empty = len(seg.points) == 0
         seg.lo = np.full(3, np.inf) if empty else seg.points.min(axis=0)
         seg.hi = np.full(3, -np.inf) if empty else seg.points.max(axis=0)
-        self._shape(seg)
+        seg.cloud_changed()
 
-    @staticmethod
-    def _shape(seg: TrackedSegment) -> None:
-        seg.centroid = seg.points.mean(axis=0) if len(seg.points) else np.zeros(3)
-        seg.max_extent = _pca_extent(seg.points)
+    def _reached(self, occluded_keys: np.ndarray, keys: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(Q,) whether a point of a cloud (sorted unique `keys`, their `points`) lies within
+        unocclude_dist_m of each occluded voxel's centre. Only the 27 voxels around can; they are
+        looked up from the smaller side (the offsets are symmetric, the pairs the same)."""
+        reached = np.zeros(len(occluded_keys), dtype=bool)
+        if len(occluded_keys) == 0 or len(keys) == 0:
+            return reached
+        small, large = (occluded_keys, keys) if len(occluded_keys) <= len(keys) else (keys, occluded_keys)
+        near = (small[:, None] + _NEIGHBOUR_OFFSETS[None]).ravel()
+        pos = np.minimum(np.searchsorted(large, near), len(large) - 1)
+        hit = np.flatnonzero(large[pos] == near)
+        at_small, at_large = hit // len(_NEIGHBOUR_OFFSETS), pos[hit]
+        occ, pt = (at_small, at_large) if small is occluded_keys else (at_large, at_small)
+        centres = voxel_unhash(occluded_keys[occ], self.cfg.segment_voxel_m)
+        d = np.linalg.norm(points[pt] - centres, axis=1)
+        reached[occ[d <= self.cfg.unocclude_dist_m]] = True
+        return reached
 
-    def _unocclude(self, seg: TrackedSegment) -> None:
-        """Clear occluded voxels whose centre has a real point within unocclude_dist_m."""
-        if len(seg.occluded_keys) == 0 or len(seg.keys) == 0:
-            return
-        voxel = self.cfg.segment_voxel_m
-        near = (seg.occluded_keys[:, None] + _NEIGHBOUR_OFFSETS[None]).ravel()
-        pos = np.minimum(np.searchsorted(seg.keys, near), len(seg.keys) - 1)
-        hit = seg.keys[pos] == near
-        owner = np.repeat(np.arange(len(seg.occluded_keys)), len(_NEIGHBOUR_OFFSETS))[hit]
-        centres = voxel_unhash(seg.occluded_keys, voxel)
-        d = np.linalg.norm(seg.points[pos[hit]] - centres[owner], axis=1)
-        cleared = np.zeros(len(seg.occluded_keys), dtype=bool)
-        cleared[owner[d <= self.cfg.unocclude_dist_m]] = True
-        seg.occluded_keys = seg.occluded_keys[~cleared]
-
-    def _add_occluded(self, seg: TrackedSegment, occluded: np.ndarray) -> None:
-        if len(occluded):
-            keys = voxel_hash(occluded, self.cfg.segment_voxel_m)
-            seg.occluded_keys = np.union1d(seg.occluded_keys, keys)
+    def _grow(self, seg: TrackedSegment, keys: np.ndarray, points: np.ndarray, coarse: np.ndarray,
+              occluded_keys: np.ndarray) -> None:
+        """Add a cloud (arguments as `_set_points`) and occluded voxel keys (sorted unique), then
+        clear the occluded voxels a real point reaches. A voxel's point never changes, so the
+        occluded voxels kept so far are tested against the added voxels only."""
+        old = seg.occluded_keys
+        fresh = occluded_keys[~_in_sorted(occluded_keys, old)]
+        keys, points = self._add_points(seg, keys, points, coarse)
+        old = old[~self._reached(old, keys, points)]
+        fresh = fresh[~self._reached(fresh, seg.keys, seg.points)]
+        seg.occluded_keys = _insert_sorted(old, fresh)
 
     def final_cleanup(self, seg: TrackedSegment) -> None:
         """Keep the largest DBSCAN cluster (all points if there is none)."""
@@ -208,15 +256,19 @@ class SegmentTracker:
         camera_xyz = obs.T_odom_camera[:3, 3]
         candidates = self.by_status(SegmentStatus.NURSERY, SegmentStatus.ACTIVE)
         k = len(obs)
-        bounds = np.searchsorted(obs.point_obs, np.arange(k + 1))
-        obs_points = [obs.points[bounds[i] : bounds[i + 1]] for i in range(k)]
-        occ_bounds = np.searchsorted(obs.occluded_obs, np.arange(k + 1))
-        obs_occluded = [obs.occluded[occ_bounds[i] : occ_bounds[i + 1]] for i in range(k)]
+        # the frame's points hashed once per lattice; per observation: its voxels (first point
+        # each), its IoM keys and its occluded voxels
+        coarse = voxel_hash(obs.points, cfg.iom_voxel_m)
+        keys, key_obs, first = group_unique(voxel_hash(obs.points, cfg.segment_voxel_m), obs.point_obs)
+        iom_keys, iom_obs, _ = group_unique(coarse, obs.point_obs)
+        occ_keys, occ_obs, _ = group_unique(voxel_hash(obs.occluded, cfg.segment_voxel_m), obs.occluded_obs)
+        key_bounds = np.searchsorted(key_obs, np.arange(k + 1))
+        occ_bounds = np.searchsorted(occ_obs, np.arange(k + 1))
         descriptors = torch.nn.functional.normalize(obs.descriptors.detach().to("cpu", torch.float64), dim=1)
 
         match = np.full(k, -1, dtype=np.int64)
         if k and candidates:
-            score = self._scores(obs_points, descriptors, candidates)
+            score = self._scores(obs, iom_keys, iom_obs, descriptors, candidates)
             cost = np.where(score >= 0, -score, _INVALID)
             pad = np.full((k, k), _INVALID)
             np.fill_diagonal(pad, _NO_ASSOCIATION)
@@ -225,11 +277,12 @@ class SegmentTracker:
             match[rows[ok]] = cols[ok]
 
         for i in range(k):
+            at = first[key_bounds[i] : key_bounds[i + 1]]
+            cloud = (keys[key_bounds[i] : key_bounds[i + 1]], obs.points[at], coarse[at])
+            occluded = occ_keys[occ_bounds[i] : occ_bounds[i + 1]]
             if match[i] >= 0:
                 seg = candidates[match[i]]
-                self._add_occluded(seg, obs_occluded[i])
-                self._add_points(seg, obs_points[i])
-                self._unocclude(seg)
+                self._grow(seg, *cloud, occluded)
                 seg.descriptor_sum = seg.descriptor_sum + descriptors[i]
                 seg.descriptor_count += 1
                 seg.last_seen = t
@@ -238,46 +291,49 @@ class SegmentTracker:
                 if seg.status == SegmentStatus.NURSERY and seg.sightings >= cfg.min_sightings:
                     seg.status = SegmentStatus.ACTIVE
             else:
-                self._create(obs_points[i], obs_occluded[i], descriptors[i], t, camera_xyz)
+                self._create(cloud, occluded, descriptors[i], t, camera_xyz)
 
         self._life_cycle(t, camera_xyz)
         self._merge()
 
-    def _create(self, points: np.ndarray, occluded: np.ndarray, descriptor: torch.Tensor, t: float,
-                camera_xyz: np.ndarray) -> TrackedSegment:
+    def _create(self, cloud: tuple[np.ndarray, np.ndarray, np.ndarray], occluded_keys: np.ndarray,
+                descriptor: torch.Tensor, t: float, camera_xyz: np.ndarray) -> TrackedSegment:
         status = SegmentStatus.ACTIVE if self.cfg.min_sightings <= 1 else SegmentStatus.NURSERY
         seg = TrackedSegment(
             id=self._next_id, status=status, points=np.zeros((0, 3)), keys=np.zeros(0, np.int64),
-            iom_keys=np.zeros(0, np.int64), occluded_keys=np.zeros(0, np.int64), descriptor_sum=descriptor.clone(),
+            iom_keys=np.zeros(0, np.int64), occluded_keys=occluded_keys, descriptor_sum=descriptor.clone(),
             descriptor_count=1, first_seen=t, last_seen=t, sightings=1, last_camera_xyz=camera_xyz.copy(),
         )
         self._next_id += 1
-        self._add_occluded(seg, occluded)
-        self._set_points(seg, points)
-        self._unocclude(seg)
+        self._set_points(seg, *cloud)
+        seg.occluded_keys = occluded_keys[~self._reached(occluded_keys, seg.keys, seg.points)]
         self.segments[seg.id] = seg
         return seg
 
-    def _scores(self, obs_points: list[np.ndarray], descriptors: torch.Tensor,
+    def _scores(self, obs: FrameObservations, iom_keys: np.ndarray, iom_obs: np.ndarray, descriptors: torch.Tensor,
                 candidates: list[TrackedSegment]) -> np.ndarray:
-        """(K, C) association scores of observations against candidate segments (-1 = invalid)."""
+        """(K, C) association scores of observations (their IoM keys: `group_unique` by
+        observation) against candidate segments (-1 = invalid)."""
         cfg = self.cfg
+        k = len(descriptors)
         cand_desc = torch.stack([c.descriptor for c in candidates])
         cosine = (descriptors @ cand_desc.T).numpy()
-        obs_keys = [np.unique(voxel_hash(p, cfg.iom_voxel_m)) for p in obs_points]
         # overlap is only possible where bounding boxes (grown by a voxel) intersect
-        obs_lo = np.stack([p.min(axis=0) for p in obs_points]) - cfg.iom_voxel_m
-        obs_hi = np.stack([p.max(axis=0) for p in obs_points]) + cfg.iom_voxel_m
+        starts = np.searchsorted(obs.point_obs, np.arange(k))
+        obs_lo = np.minimum.reduceat(obs.points, starts) - cfg.iom_voxel_m
+        obs_hi = np.maximum.reduceat(obs.points, starts) + cfg.iom_voxel_m
         cand_lo = np.stack([c.lo for c in candidates])
         cand_hi = np.stack([c.hi for c in candidates])
         touch = ((obs_lo[:, None] <= cand_hi[None]) & (obs_hi[:, None] >= cand_lo[None])).all(axis=2)
         touch &= cosine >= cfg.min_cosine
-        iom = np.zeros(cosine.shape)
-        for i, j in zip(*np.nonzero(touch)):
-            inter = sorted_overlap(obs_keys[i], candidates[j].iom_keys)
-            iom[i, j] = inter / max(1, min(len(obs_keys[i]), len(candidates[j].iom_keys)))
+        # common IoM voxels: one search of all observations' keys per touched candidate
+        inter = np.zeros(cosine.shape, dtype=np.int64)
+        for j in np.flatnonzero(touch.any(axis=0)):
+            inter[:, j] = np.bincount(iom_obs[_in_sorted(iom_keys, candidates[j].iom_keys)], minlength=k)
+        obs_size = np.bincount(iom_obs, minlength=k)
+        cand_size = np.array([len(c.iom_keys) for c in candidates])
+        iom = np.where(touch, inter / np.maximum(1, np.minimum(obs_size[:, None], cand_size[None])), 0.0)
         return association_scores(iom, cosine, cfg)
-
     def _life_cycle(self, t: float, camera_xyz: np.ndarray) -> None:
         cfg = self.cfg
         for seg in list(self.segments.values()):
@@ -302,37 +358,44 @@ class SegmentTracker:
             pool = active + self.by_status(SegmentStatus.INACTIVE)
             if not active or len(pool) < 2:
                 return
-            centroid = np.stack([s.centroid for s in pool])
-            extent = np.array([s.max_extent for s in pool])
-            near = np.linalg.norm(centroid[: len(active), None] - centroid[None], axis=2) <= 0.5 * (
-                extent[: len(active), None] + extent[None]
-            )
-            near &= np.arange(len(active))[:, None] < np.arange(len(pool))[None]  # pairs i < j, i active
-            if not near.any():
-                return
+            na = len(active)
             desc = torch.stack([s.descriptor for s in pool])
-            cosine = (desc[: len(active)] @ desc.T).numpy()
-            near &= cosine >= cfg.min_cosine
+            cosine = (desc[:na] @ desc.T).numpy()
+            # candidate pairs: i < j, i active, cosine and IoM pass the association test, centroids
+            # within half the sum of the extents. A centroid lies in its box and an extent is at most
+            # the box diagonal, so far boxes are dropped first; centroids and extents (a pass over
+            # the cloud) are read last, for the few pairs left
+            lo, hi = np.stack([s.lo for s in pool]), np.stack([s.hi for s in pool])
+            box_gap = np.linalg.norm(np.maximum(0.0, np.maximum(lo[:na, None] - hi[None], lo[None] - hi[:na, None])), axis=2)
+            diagonal = np.linalg.norm(hi - lo, axis=1)
+            maybe = box_gap <= 0.5 * (diagonal[:na, None] + diagonal[None]) + _BOX_SLACK_M
+            maybe &= np.arange(na)[:, None] < np.arange(len(pool))[None]
+            maybe &= cosine >= cfg.min_cosine
+            rows, cols = np.nonzero(maybe)
+            iom = np.array([sorted_overlap(pool[i].iom_keys, pool[j].iom_keys)
+                            / max(1, min(len(pool[i].iom_keys), len(pool[j].iom_keys))) for i, j in zip(rows, cols)])
+            valid = association_scores(iom, cosine[rows, cols], cfg) >= 0
+            rows, cols = rows[valid], cols[valid]
+            if not len(rows):
+                return
+            centroid = np.stack([pool[i].centroid for i in rows]), np.stack([pool[j].centroid for j in cols])
+            extent = np.array([pool[i].max_extent for i in rows]), np.array([pool[j].max_extent for j in cols])
+            near = np.linalg.norm(centroid[0] - centroid[1], axis=1) <= 0.5 * (extent[0] + extent[1])
             merged_any, used = False, set()
-            for i, j in zip(*np.nonzero(near)):
+            for i, j in zip(rows[near], cols[near]):
                 a, b = pool[i], pool[j]
                 if a.id in used or b.id in used:
                     continue
-                inter = sorted_overlap(a.iom_keys, b.iom_keys)
-                iom = inter / max(1, min(len(a.iom_keys), len(b.iom_keys)))
-                if association_scores(np.array(iom), cosine[i, j], cfg) >= 0:
-                    self._merge_pair(a, b)
-                    used.update((a.id, b.id))
-                    merged_any = True
+                self._merge_pair(a, b)
+                used.update((a.id, b.id))
+                merged_any = True
             if not merged_any:
                 return
 
     def _merge_pair(self, a: TrackedSegment, b: TrackedSegment) -> None:
         keep, gone = (a, b) if a.id < b.id else (b, a)
         keep.status = SegmentStatus.ACTIVE  # a merge pair always holds an active segment
-        keep.occluded_keys = np.union1d(keep.occluded_keys, gone.occluded_keys)
-        self._add_points(keep, gone.points)
-        self._unocclude(keep)
+        self._grow(keep, gone.keys, gone.points, voxel_hash(gone.points, self.cfg.iom_voxel_m), gone.occluded_keys)
         keep.descriptor_sum = keep.descriptor_sum + gone.descriptor_sum
         keep.descriptor_count += gone.descriptor_count
         keep.first_seen = min(keep.first_seen, gone.first_seen)
