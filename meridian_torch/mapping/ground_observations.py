@@ -121,9 +121,13 @@ def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.nd
     """Points of each group moved along x so that groups are at least `gap` apart (for one KD-tree)."""
     if len(points) == 0:
         return points.astype(np.float64)
-    n_groups = int(groups.max()) + 1
-    lo = np.full((n_groups, points.shape[1]), np.inf)
-    np.minimum.at(lo, groups, points)
+    # per-group minimum by one sort and reduceat (np.minimum.at is ~10x slower); the sort is
+    # linear on the already sorted groups of the cleaning steps
+    order = np.argsort(groups, kind="stable")
+    sorted_groups = groups[order]
+    start = np.flatnonzero(np.r_[True, sorted_groups[1:] != sorted_groups[:-1]])
+    lo = np.full((int(groups.max()) + 1, points.shape[1]), np.inf)
+    lo[sorted_groups[start]] = np.minimum.reduceat(points[order], start, axis=0)
     local = points - lo[groups]
     width = float(local.max()) + gap
     shifted = local.copy()
@@ -142,7 +146,9 @@ def group_outlier_mask(points: np.ndarray, groups: np.ndarray, neighbours: int, 
         return keep
     gap = 1e6  # no neighbour search ever crosses groups
     shifted = separate_groups(points, groups, gap)
-    dist, _ = cKDTree(shifted).query(shifted, k=neighbours + 1, distance_upper_bound=gap / 2)
+    # an unbalanced (sliding midpoint) tree builds and queries faster; distances are the same
+    tree = cKDTree(shifted, balanced_tree=False)
+    dist, _ = tree.query(shifted, k=neighbours + 1, distance_upper_bound=gap / 2)
     dist = dist[:, 1:]
     found = np.isfinite(dist)
     n_found = found.sum(axis=1)
@@ -188,13 +194,19 @@ def group_largest_cluster(
     a, b = pairs[:, 0], pairs[:, 1]
     count = weight + np.bincount(a, weight[b], minlength=n) + np.bincount(b, weight[a], minlength=n)
     core = count >= min_points
-    both = core[a] & core[b]
+    core_a, core_b = core[a], core[b]
+    both = core_a & core_b
     graph = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
+    # query_pairs gives each pair once, so the conversion to CSR may skip summing duplicates (a
+    # sort of every row, half the time of connected_components, which needs no row order)
+    graph.has_canonical_format = True
     _, label = connected_components(graph, directed=False)
     label = np.where(core, label, -1)
-    # border cells: take the label of any core neighbour
+    # border cells: take the label of any core neighbour (the last one in pair order)
+    mixed = core_a != core_b
+    a, b = a[mixed], b[mixed]
     for u, v in ((a, b), (b, a)):
-        attach = ~core[u] & core[v]
+        attach = core[v]
         label[u[attach]] = label[v[attach]]
     clustered = label >= 0
     has_cluster = np.zeros(n_groups, dtype=bool)
@@ -244,6 +256,11 @@ def backproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, camera: CameraModel
     """Pixels (u column, v row) with depth z along the optical axis -> (N, 3) camera-frame points."""
     z = z.astype(np.float64)
     return np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1)
+
+
+def _nonzero(a: np.ndarray) -> tuple[np.ndarray, ...]:
+    # np.nonzero's result, ~6x faster on the (M, H, W) masks (flat indices, then unravelled)
+    return np.unravel_index(np.flatnonzero(a), a.shape)
 
 
 def _transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -303,7 +320,7 @@ def frame_observations(
     z_grid = depth[::stride, ::stride]
     ok_depth = (z_grid > 0) & (z_grid < cfg.max_depth_m)
     eroded = erode_masks(masks, cfg.erosion_px)[:, ::stride, ::stride]
-    obs_m, row, col = np.nonzero(eroded & ok_depth[None])
+    obs_m, row, col = _nonzero(eroded & ok_depth[None])
     z = z_grid[row, col]
     pts = _transform(backproject(col * float(stride), row * float(stride), z, camera), T)
     values = np.concatenate([pts, z[:, None].astype(np.float64)], axis=1)  # keep depth per point
@@ -323,8 +340,8 @@ def frame_observations(
     band = edge_band(depth > 0, cfg.occlusion_edge_frac, cfg.occlusion_edge_max_frac)
     band |= depth > cfg.occlusion_max_depth_m
     band &= (depth > 0) & (depth < cfg.max_depth_m)
-    b_row, b_col = np.nonzero(band)
-    b_m, b_k = np.nonzero(masks[:, b_row, b_col])
+    b_row, b_col = _nonzero(band)
+    b_m, b_k = _nonzero(masks[:, b_row, b_col])
     band_pts = _transform(backproject(b_col[b_k].astype(np.float64), b_row[b_k].astype(np.float64),
                                       depth[b_row[b_k], b_col[b_k]], camera), T)
     band_pts, band_groups = group_voxel_downsample(band_pts, b_m.astype(np.int64), clean.voxel_m)
