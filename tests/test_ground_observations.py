@@ -1,12 +1,12 @@
-"""Per-frame ground observations: grouped point-cloud ops against slow loops, back-projection of
-a known plane, the image-edge band and the occluded points."""
+"""Per-frame ground observations: grouped point-cloud ops against slow loops and brute-force
+references, back-projection of a known plane, the image-edge band and the occluded points."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
@@ -14,6 +14,7 @@ from meridian_torch.config import CloudCleanupConfig, GroundObservationConfig
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.mapping.ground_observations import (
+    _nonzero,
     edge_band,
     erode_masks,
     frame_observations,
@@ -21,6 +22,7 @@ from meridian_torch.mapping.ground_observations import (
     group_outlier_mask,
     group_voxel_downsample,
     pixel_stride,
+    separate_groups,
     voxel_hash,
     voxel_unhash,
 )
@@ -102,6 +104,45 @@ def test_group_outlier_mask_matches_loop():
     assert 0 < keep.sum() < len(keep)
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 6), st.integers(1, 120), st.sampled_from([2, 3]))
+def test_separate_groups_matches_loop(seed, n_groups, n, dims):
+    rng = np.random.default_rng(seed)
+    groups = rng.integers(0, n_groups, n)  # unsorted, some groups possibly empty
+    points = rng.normal(size=(n, dims)) * 30.0 + 1000.0
+    gap = 5.0
+    shifted = separate_groups(points, groups, gap)
+    lo = np.zeros((n_groups, dims))
+    for g in np.unique(groups):
+        lo[g] = points[groups == g].min(axis=0)
+    local = points - lo[groups]
+    expected = local.copy()
+    expected[:, 0] += groups * (local.max() + gap)
+    assert np.array_equal(shifted, expected)
+    # groups at least `gap` apart along x
+    for g, h in zip(np.unique(groups)[:-1], np.unique(groups)[1:]):
+        assert shifted[groups == h, 0].min() - shifted[groups == g, 0].max() >= gap
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(1, 60), min_size=1, max_size=6),
+       st.integers(1, 12), st.floats(0.0, 2.0))
+def test_group_outlier_mask_matches_brute_force(seed, sizes, neighbours, std_ratio):
+    # groups of any size, also smaller than `neighbours` + 1 and single points (kept)
+    rng = np.random.default_rng(seed)
+    groups = np.repeat(np.arange(len(sizes)), sizes)
+    points = rng.normal(size=(len(groups), 3)) * rng.uniform(0.1, 3.0, (len(groups), 1)) + groups[:, None] * 0.3
+    keep = group_outlier_mask(points, groups, neighbours, std_ratio)
+    for g in range(len(sizes)):
+        p = points[groups == g]
+        if len(p) < 2:
+            assert keep[groups == g].all()
+            continue
+        d = np.sort(np.linalg.norm(p[:, None] - p[None], axis=-1), axis=1)[:, 1 : neighbours + 1]
+        mean_d = d.mean(axis=1)
+        assert np.array_equal(keep[groups == g], mean_d <= mean_d.mean() + std_ratio * mean_d.std())
+
+
 def _naive_dbscan_largest(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     n = len(points)
     d = np.linalg.norm(points[:, None] - points[None], axis=-1)
@@ -148,6 +189,58 @@ def test_group_largest_cluster_matches_naive_dbscan_on_grid_points():
         assert np.array_equal(keep[groups == g], expected)
 
 
+def _dbscan_clusters(points: np.ndarray, eps: float, min_points: int) -> tuple[list[set[int]], np.ndarray]:
+    """Brute-force DBSCAN: the clusters (point index sets, border points in every cluster they
+    touch) and the core mask."""
+    nb = np.linalg.norm(points[:, None] - points[None], axis=-1) <= eps
+    core = nb.sum(1) >= min_points
+    clusters, seen = [], np.zeros(len(points), dtype=bool)
+    for i in np.flatnonzero(core):
+        if seen[i]:
+            continue
+        members, stack = {int(i)}, [int(i)]
+        seen[i] = True
+        while stack:
+            j = stack.pop()
+            for k in np.flatnonzero(nb[j] & core & ~seen):
+                seen[k] = True
+                members.add(int(k))
+                stack.append(int(k))
+        clusters.append(members | {int(k) for k in np.flatnonzero(nb[list(members)].any(0))})
+    return clusters, core
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4), st.integers(3, 12))
+def test_group_largest_cluster_matches_brute_force_dbscan(seed, n_groups, min_points):
+    # points at eps/4 cell centres, several points per cell (weights), blobs and noise; compared
+    # where DBSCAN's answer is unique (no border point between clusters, no tie for the largest)
+    rng = np.random.default_rng(seed)
+    eps, cell = 1.0, 0.25
+    clouds, groups = [], []
+    for g in range(n_groups):
+        blobs = [rng.integers(-3, 4, size=(rng.integers(1, 50), 3)) + rng.integers(-12, 13, 3)
+                 for _ in range(rng.integers(1, 4))]
+        cells = np.concatenate(blobs)  # repeated cells: several points in one cell
+        clouds.append((cells + 0.5) * cell)
+        groups.append(np.full(len(cells), g))
+    points, groups = np.concatenate(clouds), np.concatenate(groups)
+    order = rng.permutation(len(points))
+    points, groups = points[order], groups[order]
+    keep, has = group_largest_cluster(points, groups, eps, min_points)
+    for g in range(n_groups):
+        clusters, _ = _dbscan_clusters(points[groups == g], eps, min_points)
+        in_many = sum((np.bincount(list(c), minlength=int((groups == g).sum())) for c in clusters),
+                      np.zeros((groups == g).sum(), dtype=int))
+        sizes = sorted((len(c) for c in clusters), reverse=True)
+        assume(in_many.max(initial=0) <= 1 and (len(sizes) < 2 or sizes[0] > sizes[1]))
+        assert has[g] == bool(clusters)
+        expected = np.zeros((groups == g).sum(), dtype=bool)
+        if clusters:
+            expected[list(max(clusters, key=len))] = True
+        assert np.array_equal(keep[groups == g], expected)
+
+
 def test_group_largest_cluster_reports_groups_without_cluster():
     points = np.array([[0.0, 0, 0], [5.0, 0, 0], [0.0, 0, 0.05], [0.02, 0, 0]])
     keep, has = group_largest_cluster(points, np.array([0, 0, 1, 1]), 0.5, 3)
@@ -187,6 +280,15 @@ def test_erode_masks_keeps_image_border_and_shrinks_inner_edges():
     out = erode_masks(m, 3)
     assert out[0, 0, 0] and out[0, 29, 0] and not out[0, 15, 19] and out[0, 15, 16]
     assert out[1].sum() == 4 * 4 and out[1, 13:17, 28:32].all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(0, 7), min_size=1, max_size=3), st.floats(0.0, 1.0))
+def test_nonzero_matches_numpy(seed, shape, density):
+    a = np.random.default_rng(seed).random(shape) < density
+    expected, got = np.nonzero(a), _nonzero(a)
+    assert len(got) == len(expected)
+    assert all(x.dtype == y.dtype and np.array_equal(x, y) for x, y in zip(got, expected))
 
 
 def test_pixel_stride_scales_with_width():
