@@ -217,3 +217,30 @@ def test_perceiving_a_batch_ahead_gives_the_plain_loops_submaps(tiny: Path, subm
         for name in a.primitives.__dataclass_fields__:
             assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
         assert torch.equal(a.frame_descriptors, b.frame_descriptors)
+
+
+def test_fast_tracking_gives_the_plain_trackers_submaps(tiny: Path, submaps) -> None:
+    """The whole tiny sequence through the plain tracker (every occluded voxel against every point,
+    IoM per pair, eager centroids and extents): the same segments on every frame and the same
+    submaps as map_ground, bitwise."""
+    from tests.test_ground_tracking import PlainTracker, assert_same_segments
+
+    reader = SequenceReader(tiny)
+    fast = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+    plain = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+    plain.tracker = PlainTracker(CFG.ground_map.tracking)
+    made = {"fast": [], "plain": []}
+    for start in range(0, len(reader), CFG.ground_map.batch_size):
+        batch = fast.perceive([reader[i] for i in range(start, min(start + CFG.ground_map.batch_size, len(reader)))])
+        made["fast"] += fast.integrate(batch)
+        made["plain"] += plain.integrate(batch)
+        assert_same_segments(fast.tracker.segments, plain.tracker.segments)
+    made["fast"] += fast.finish()
+    made["plain"] += plain.finish()
+    assert len(made["fast"]) == len(made["plain"]) == len(submaps) >= 2
+    for a, b, c in zip(made["fast"], made["plain"], submaps):
+        assert a.time == b.time == c.time
+        for name in a.primitives.__dataclass_fields__:
+            assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
+            assert torch.equal(getattr(a.primitives, name), getattr(c.primitives, name)), name
+        assert torch.equal(a.segment_ids, b.segment_ids)

@@ -11,6 +11,7 @@ from meridian_torch.mapping.ground_observations import voxel_hash
 from meridian_torch.mapping.ground_submaps import (
     SubmapGeometry,
     SubmapTrigger,
+    _shares_cell,
     artifact_line_mask,
     submap_primitives,
     thin_by_distance,
@@ -210,3 +211,39 @@ def test_flat_compact_segments_give_no_points_tall_ones_do():
     off = GroundMapConfig(point_min_height_m=0.0)  # the reference: both are points
     prims, _ = submap_primitives(segs, np.array([3.0, 0.0, 0.0]), off, PrimitiveConfig(), 0.1)
     assert sorted(prims.point_segment_ids.tolist()) == [1, 2]
+
+
+def test_box_shortcuts_of_the_radius_crop_give_the_per_point_crop():
+    # segments wholly inside the radius, wholly outside and cut by it; with unknown boxes
+    # (infinite) every point's distance is tested, which must give the same submap bitwise
+    rng = np.random.default_rng(6)
+    segs = []
+    for sid, (x, y) in enumerate([(2, 1), (-6, 3), (17, 0), (19.8, -1), (26, 4), (0, -19.6)]):
+        block = _rectangle(x, x + 1.5, y, y + 1.2) + rng.normal(0, 0.01, (1, 3))
+        tall = np.concatenate([block + [0, 0, h] for h in np.arange(0.05, 0.9, 0.1)])
+        occluded = _rectangle(x + 1.5, x + 1.9, y, y + 1.2, 0.1) + [0, 0, 0.3]
+        segs.append(_segment(sid, tall, occluded))
+    centre = np.array([0.0, 0.0, 0.5])
+    cfg = GroundMapConfig(submap_radius_m=20.0)
+    unknown = []
+    for seg in segs:
+        copy = TrackedSegment(**{**vars(seg), "_shape": None})
+        copy.lo, copy.hi = np.full(3, -np.inf), np.full(3, np.inf)
+        unknown.append(copy)
+    prims, geometry = submap_primitives(segs, centre, cfg, PrimitiveConfig(), 0.1)
+    plain_prims, plain_geometry = submap_primitives(unknown, centre, cfg, PrimitiveConfig(), 0.1)
+    assert 2 <= len(geometry.segment_ids) < len(segs)
+    for name in ("points_xy", "point_segment", "occluded_xy", "occluded_segment", "segment_ids"):
+        np.testing.assert_array_equal(getattr(geometry, name), getattr(plain_geometry, name))
+    for name in ("points_xy", "point_segment_ids", "line_endpoints", "line_kinds", "line_segment_ids"):
+        assert torch.equal(getattr(prims, name), getattr(plain_prims, name))
+
+
+def test_shares_cell_equals_a_set_of_cells():
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(0, 3, (200, 2))
+    others = rng.uniform(1, 5, (50, 2))
+    got = _shares_cell(xy, others, 0.25)
+    cells = set(voxel_hash(others, 0.25).tolist())
+    assert got.tolist() == [c in cells for c in voxel_hash(xy, 0.25).tolist()]
+    assert 0 < got.sum() < len(got)

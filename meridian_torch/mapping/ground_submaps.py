@@ -52,6 +52,9 @@ from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = ["SubmapTrigger", "SubmapGeometry", "submap_primitives", "artifact_line_mask", "thin_by_distance"]
 
+# margin of the box tests of the radius crop (a point's distance rounds far less)
+_BOX_SLACK_M = 1e-6
+
 
 @dataclass
 class SubmapTrigger:
@@ -137,6 +140,18 @@ class SubmapGeometry:
     segment_ids: np.ndarray  # (S,) tracked segment ids
 
 
+def _shares_cell(xy: np.ndarray, others_xy: np.ndarray, grid_m: float) -> np.ndarray:
+    """(N,) whether each point of `xy` shares its `grid_m` x-y cell with a point of `others_xy`
+    (sorts the few cells of `xy`, not the many of `others_xy`)."""
+    cells = voxel_hash(xy, grid_m)
+    unique = np.unique(cells)
+    other = voxel_hash(others_xy, grid_m)
+    pos = np.minimum(np.searchsorted(unique, other), len(unique) - 1)
+    taken = np.zeros(len(unique), dtype=bool)
+    taken[pos[unique[pos] == other]] = True
+    return taken[np.searchsorted(unique, cells)]
+
+
 def _convex_hull_area(points: np.ndarray) -> float:
     if len(points) < 3:
         return 0.0
@@ -157,19 +172,30 @@ def submap_primitives(
     radius = cfg.submap_radius_m
     pts_l, grp_l, occ_l, ogrp_l = [], [], [], []
     height = np.zeros(len(segments))
+    # a segment whose box lies beyond the radius has no point inside; one whose box lies within
+    # the inner ring has all points inside and none in the ring (no per-point distances needed)
+    lo = np.stack([s.lo for s in segments]) - centre_xyz if segments else np.zeros((0, 3))
+    hi = np.stack([s.hi for s in segments]) - centre_xyz if segments else np.zeros((0, 3))
+    box_near = np.linalg.norm(np.maximum(0.0, np.maximum(lo, -hi)), axis=1)
+    box_far = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
     for g, seg in enumerate(segments):
-        d = np.linalg.norm(seg.points - centre_xyz, axis=1)
-        inside = d <= radius
-        if not inside.any():
+        if box_near[g] > radius + _BOX_SLACK_M or len(seg.points) == 0:
             continue
-        pts = seg.points[inside]
-        height[g] = np.percentile(pts[:, 2], 95) - np.percentile(pts[:, 2], 5)
+        if box_far[g] < radius - cfg.occluded_ring_m - _BOX_SLACK_M:
+            pts, ring = seg.points, seg.points[:0]
+        else:
+            d = np.linalg.norm(seg.points - centre_xyz, axis=1)
+            inside = d <= radius
+            if not inside.any():
+                continue
+            pts = seg.points[inside]
+            ring = pts[d[inside] > radius - cfg.occluded_ring_m]
+        low, high = np.percentile(pts[:, 2], [5, 95])
+        height[g] = high - low
         occ = seg.occluded_points(occluded_voxel_m)
         occ = occ[np.linalg.norm(occ - centre_xyz, axis=1) <= radius]
         if len(occ):  # cleared where a real point shares the x-y cell
-            cells = np.unique(voxel_hash(pts[:, :2], cfg.occluded_grid_m))
-            occ = occ[~np.isin(voxel_hash(occ[:, :2], cfg.occluded_grid_m), cells)]
-        ring = pts[d[inside] > radius - cfg.occluded_ring_m]
+            occ = occ[~_shares_cell(occ[:, :2], pts[:, :2], cfg.occluded_grid_m)]
         pts_l.append(pts[:, :2])
         grp_l.append(np.full(len(pts), g))
         occ_xy = np.concatenate([occ[:, :2], ring[:, :2]])

@@ -144,6 +144,14 @@ def group_unique(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.n
     return k[first], g[first], order[first]
 
 
+def _neighbour_pairs(small: np.ndarray, large: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) with large[j] one of the 27 voxel keys around small[i] (both sorted unique)."""
+    near = (small[:, None] + _NEIGHBOUR_OFFSETS[None]).ravel()
+    pos = np.minimum(np.searchsorted(large, near), len(large) - 1)
+    hit = np.flatnonzero(large[pos] == near)
+    return hit // len(_NEIGHBOUR_OFFSETS), pos[hit]
+
+
 def association_scores(iom: np.ndarray, cosine: np.ndarray, cfg: GroundTrackingConfig) -> np.ndarray:
     """Score in [0, 1] of pairs (geometric mean of normalized IoM and cosine); -1 where invalid."""
     valid = (iom >= cfg.min_iom) & (cosine >= cfg.min_cosine)
@@ -204,19 +212,17 @@ class SegmentTracker:
 
     def _reached(self, occluded_keys: np.ndarray, keys: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(Q,) whether a point of a cloud (sorted unique `keys`, their `points`) lies within
-        unocclude_dist_m of each occluded voxel's centre. Only the 27 voxels around can; they are
-        looked up from the smaller side (the offsets are symmetric, the pairs the same)."""
+        unocclude_dist_m of each occluded voxel's centre. Only points in the 27 voxels around can;
+        the pairs of neighbouring voxels are looked up from the smaller side (the offsets are
+        symmetric)."""
         reached = np.zeros(len(occluded_keys), dtype=bool)
         if len(occluded_keys) == 0 or len(keys) == 0:
             return reached
-        small, large = (occluded_keys, keys) if len(occluded_keys) <= len(keys) else (keys, occluded_keys)
-        near = (small[:, None] + _NEIGHBOUR_OFFSETS[None]).ravel()
-        pos = np.minimum(np.searchsorted(large, near), len(large) - 1)
-        hit = np.flatnonzero(large[pos] == near)
-        at_small, at_large = hit // len(_NEIGHBOUR_OFFSETS), pos[hit]
-        occ, pt = (at_small, at_large) if small is occluded_keys else (at_large, at_small)
-        centres = voxel_unhash(occluded_keys[occ], self.cfg.segment_voxel_m)
-        d = np.linalg.norm(points[pt] - centres, axis=1)
+        from_occluded = len(occluded_keys) <= len(keys)
+        small, large = (occluded_keys, keys) if from_occluded else (keys, occluded_keys)
+        at_small, at_large = _neighbour_pairs(small, large)
+        occ, pt = (at_small, at_large) if from_occluded else (at_large, at_small)
+        d = np.linalg.norm(points[pt] - voxel_unhash(occluded_keys[occ], self.cfg.segment_voxel_m), axis=1)
         reached[occ[d <= self.cfg.unocclude_dist_m]] = True
         return reached
 
