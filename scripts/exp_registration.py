@@ -11,12 +11,19 @@ SE(2) (x, y, yaw) from the sequence's groundtruth.tum. Known rotation = the true
 T_world_odom is given to the matcher as its rotation prior. The true patch is the patch whose
 centre is nearest to the true base position among those containing it.
 
+Harder cases: `--perturb missing=0.4,spurious=0.2,noise_m=1.0` degrades every submap's
+primitives first (seeded, `meridian_torch.evaluation.perturbation`). Across patches
+(`--decoys N`, default 24): the submap is matched in one call against its true patch and N
+seeded random patches that do not overlap it (as place recognition would propose them); per
+patch = the true patch's own ranking, across = all hypotheses of all patches ranked by their
+probability (ties ranked against the truth), as the localizer compares them.
+
 Inputs: a sequence folder with groundtruth.tum (e.g. written by `meridian-torch simulate`) and
 its aerial map (.mtm, from `meridian-torch build-map`), or `--simulate CONFIG` to write both
 first into `--work` (short drives via `--drive-m`).
 
     python scripts/exp_registration.py --sequence runs/kitti09 --map runs/kitti09/aerial.mtm \
-        -c configs/kitti09.yaml --max-submaps 20
+        -c configs/kitti09.yaml --max-submaps 20 --perturb missing=0.4,spurious=0.2,noise_m=1.0
     python scripts/exp_registration.py --simulate configs/kitti00.yaml --work runs/exp00 --max-frames 300
     python scripts/exp_registration.py --simulate configs/demo.yaml --work runs/exp_demo --drive-m 600
 """
@@ -33,10 +40,12 @@ from pathlib import Path
 
 import numpy as np
 
+from meridian_torch.evaluation.perturbation import Perturbation, parse_perturbation, perturb_primitives
 from meridian_torch.geometry.planar import scalar_yaw_of, se2_from_se3, wrap_angle, yaw_of
 
 THRESHOLDS = ((5.0, 5.0), (5.0, 10.0))  # (metres, degrees)
 TOP_L = (1, 5, 10, 25)
+ACROSS_TOP_L = (1, 5)
 VARIANTS = (("Meridian", True), ("Meridian w/o Lines", False))
 
 # Paper Table (KITTI Seq. 00; the paper has no other KITTI sequence), percent < 5 m, < 5 deg:
@@ -75,6 +84,29 @@ def top_l_success(T_hyp: np.ndarray, valid: np.ndarray, T_true: np.ndarray, max_
     return {top: bool((hit & (rank < top)).any()) for top in top_l}
 
 
+def across_patch_success(T_hyp: np.ndarray, probability: np.ndarray, valid: np.ndarray, T_true: np.ndarray,
+                         max_t_m: float, max_yaw_deg: float, top_l: tuple[int, ...] = ACROSS_TOP_L) -> dict[int, bool]:
+    """For hypotheses (P, L, 3, 3) of P patches with probabilities and a valid mask (P, L): is one
+    of the l most probable valid ones of all patches within the thresholds, for every l in
+    top_l. Equal probabilities rank wrong hypotheses first (a tie is not a success)."""
+    dt, dyaw = pose_errors(T_hyp.reshape(-1, 3, 3), T_true)
+    ok = valid.reshape(-1)
+    hit = (dt < max_t_m) & (dyaw < max_yaw_deg)
+    order = np.lexsort((hit, -probability.reshape(-1)))  # last key first: probability, then misses
+    ranked_hits = hit[order][ok[order]]
+    return {top: bool(ranked_hits[:top].any()) for top in top_l}
+
+
+def decoy_patches(bounds_xy: np.ndarray, true_index: int, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n distinct patches (seeded) whose extent (x0, x1, y0, y1) does not overlap the true patch's."""
+    b, t = bounds_xy, bounds_xy[true_index]
+    apart = (b[:, 1] <= t[0]) | (b[:, 0] >= t[1]) | (b[:, 3] <= t[2]) | (b[:, 2] >= t[3])
+    candidates = np.flatnonzero(apart)
+    if len(candidates) < n:
+        raise ValueError(f"decoys: {n} asked, but only {len(candidates)} patches do not overlap patch {true_index}")
+    return rng.choice(candidates, n, replace=False)
+
+
 def containing_patch(centres_xy: np.ndarray, bounds_xy: np.ndarray, position_xy: np.ndarray) -> int | None:
     """Index of the patch containing `position_xy` whose centre is nearest to it (None if none does)."""
     inside = (
@@ -101,9 +133,10 @@ class Tally:
         for top, ok in success.items():
             row[top] += int(ok)
 
-    def percent(self, variant: str, mode: str, threshold: tuple[float, float]) -> list[float]:
-        row = self.hits.get((variant, mode, threshold), {top: 0 for top in TOP_L})
-        return [100.0 * row[top] / max(self.n, 1) for top in TOP_L]
+    def percent(self, variant: str, mode: str, threshold: tuple[float, float],
+                top_l: tuple[int, ...] = TOP_L) -> list[float]:
+        row = self.hits.get((variant, mode, threshold), {})
+        return [100.0 * row.get(top, 0) / max(self.n, 1) for top in top_l]
 
 
 def format_table(title: str, tally: Tally, threshold: tuple[float, float], paper: dict[str, tuple] | None) -> str:
@@ -116,6 +149,19 @@ def format_table(title: str, tally: Tally, threshold: tuple[float, float], paper
         lines.append(f"{name:<28} " + " ".join(f"{v:>9.1f}" for v in values))
         if paper is not None and name in paper:
             lines.append(f"{'  paper (KITTI 00)':<28} " + " ".join(f"{v:>9.1f}" for v in paper[name]))
+    return "\n".join(lines)
+
+
+def format_across_table(title: str, tally: Tally, threshold: tuple[float, float], n_decoys: int) -> str:
+    """Rows per variant: per rotation mode, per-patch top-1 | across-patch top-1/5 (percent)."""
+    head = (f"{title}: {tally.n} submaps, true patch + {n_decoys} decoys, success < {threshold[0]:g} m and "
+            f"< {threshold[1]:g} deg (percent)")
+    cols = " ".join(f"{m + ' ' + c:>12}" for m in ("K", "U") for c in ("patch top-1", "all top-1", "all top-5"))
+    lines = [head, f"{'method':<28} {cols}"]
+    for name, _ in VARIANTS:
+        values = [v for mode in ("known", "unknown") for v in
+                  tally.percent(name, mode, threshold, (1,)) + tally.percent(name, mode + " across", threshold, ACROSS_TOP_L)]
+        lines.append(f"{name:<28} " + " ".join(f"{v:>12.1f}" for v in values))
     return "\n".join(lines)
 
 
@@ -132,18 +178,12 @@ def _without_lines(primitives):
                         p.line_descriptors[:0], p.line_segment_ids[:0])
 
 
-def _patch(aerial_map, index: int, lines: bool):
-    """Aerial patch `index` of the map as a one-patch batch (lines dropped unless `lines`)."""
-    import torch
+def _patches(aerial_map, indices, lines: bool):
+    """Aerial patches `indices` of the map as a batch (lines dropped unless `lines`)."""
+    from meridian_torch.types import stack_primitive_sets
 
-    from meridian_torch.types import PrimitiveSet, stack_primitive_sets
-
-    b = aerial_map.primitives
-    pv, lv = b.point_valid[index], b.line_valid[index] & lines
-    patch = PrimitiveSet(b.points_xy[index][pv], b.point_descriptors[index][pv], torch.arange(int(pv.sum())),
-                         b.line_endpoints[index][lv], b.line_kinds[index][lv], b.line_descriptors[index][lv],
-                         torch.arange(int(lv.sum())))
-    return stack_primitive_sets([patch])
+    sets = [aerial_map.primitives.unbatch(int(i)) for i in indices]
+    return stack_primitive_sets(sets if lines else [_without_lines(s) for s in sets])
 
 
 def line_agreement(ground_lines: np.ndarray, aerial_lines: np.ndarray, T: np.ndarray, tol_m: float,
@@ -191,7 +231,7 @@ def diagnose(submap, batch, T_true: np.ndarray, match_cfg) -> str:
 
 def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str], max_submaps: int | None,
         max_frames: int | None, seed: int, threads: int, cache: Path | None = None,
-        verbose: bool = False) -> tuple[Tally, dict[str, float]]:
+        verbose: bool = False, perturbation: Perturbation | None = None, n_decoys: int = 0) -> tuple[Tally, dict[str, float]]:
     import torch
 
     from meridian_torch.config import load_config
@@ -225,6 +265,7 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
         submaps = submaps[:max_submaps]
     gt = reader.groundtruth
     match_cfg = cfg.matching
+    perturbation = perturbation or Perturbation()
     tally = Tally()
     t0 = time.perf_counter()
     for submap in submaps:
@@ -236,19 +277,26 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
             continue
         tally.n += 1
         yaw_true = scalar_yaw_of(T_true)
+        # One perturbation and one set of decoys per submap, shared by every variant.
+        primitives = perturb_primitives(submap.primitives, perturbation, seed * 100_003 + submap.index)
+        rng = np.random.default_rng([seed, submap.index])
+        indices = np.concatenate([[index], decoy_patches(aerial_map.patches.bounds_xy, index, n_decoys, rng)])
         for name, lines in VARIANTS:
-            ground = submap.primitives if lines else _without_lines(submap.primitives)
-            batch = _patch(aerial_map, index, lines)
+            ground = primitives if lines else _without_lines(primitives)
+            batch = _patches(aerial_map, indices, lines)
             for mode, prior in (("known", yaw_true), ("unknown", None)):
                 hyp = match_submap(ground, batch, rotation_prior=prior, config=match_cfg,
                                    generator=torch.Generator().manual_seed(seed + submap.index))
-                T_hyp, valid = hyp.T_world_odom[0].double().numpy(), hyp.valid[0].numpy()
+                T_hyp, valid = hyp.T_world_odom.double().numpy(), hyp.valid.numpy()
+                probability = hyp.probability.double().numpy()
                 for threshold in THRESHOLDS:
-                    tally.add(name, mode, threshold, top_l_success(T_hyp, valid, T_true, *threshold))
-        print(f"  submap {submap.index:3d}: patch {index}, {len(submap.primitives.points_xy)} points, "
-              f"{len(submap.primitives.line_endpoints)} lines", flush=True)
+                    tally.add(name, mode, threshold, top_l_success(T_hyp[0], valid[0], T_true, *threshold))
+                    tally.add(name, mode + " across", threshold,
+                              across_patch_success(T_hyp, probability, valid, T_true, *threshold))
+        print(f"  submap {submap.index:3d}: patch {index}, {len(primitives.points_xy)} points, "
+              f"{len(primitives.line_endpoints)} lines", flush=True)
         if verbose:
-            print("    " + diagnose(submap, _patch(aerial_map, index, True), T_true, match_cfg), flush=True)
+            print("    " + diagnose(submap, _patches(aerial_map, [index], True), T_true, match_cfg), flush=True)
     seconds["matching"] = time.perf_counter() - t0
     return tally, seconds
 
@@ -284,6 +332,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--max-submaps", type=int, default=None, help="evaluate at most this many submaps")
     p.add_argument("--cache", type=Path, default=None, help="ground submaps: load from / save to this file")
     p.add_argument("--verbose", action="store_true", help="per submap: true counterparts among the associations")
+    p.add_argument("--perturb", default="",
+                   help="degrade submap primitives first: missing=F,spurious=F,noise_m=M (fractions, metres)")
+    p.add_argument("--decoys", type=int, default=24, help="patches matched with the true one (0: the true one alone)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
@@ -293,13 +344,22 @@ def main(argv: list[str] | None = None) -> None:
         config = config or args.simulate
     if args.sequence is None or args.map is None:
         p.error("give --sequence and --map, or --simulate CONFIG")
+    try:
+        perturbation = parse_perturbation(args.perturb)
+    except ValueError as error:
+        p.error(str(error))
     t0 = time.perf_counter()
     tally, seconds = run(args.sequence, args.map, config, args.set, args.max_submaps, args.max_frames, args.seed,
-                         args.threads, args.cache, args.verbose)
+                         args.threads, args.cache, args.verbose, perturbation, args.decoys)
     name = args.sequence.name if args.sequence.name != "sequence" else args.sequence.parent.name
+    if not perturbation.is_identity:
+        name += f" ({args.perturb})"
     for threshold in THRESHOLDS:
         print()
         print(format_table(f"{name}", tally, threshold, PAPER_KITTI00 if threshold == (5.0, 5.0) else None))
+        if args.decoys:
+            print()
+            print(format_across_table(f"{name}", tally, threshold, args.decoys))
     print("\n" + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()) + f"; total {time.perf_counter() - t0:.1f} s")
 
 

@@ -85,3 +85,142 @@ def test_line_agreement_under_the_true_transform() -> None:
     ok = exp.line_agreement(ground, aerial, T, 3.0, 10.0)
     assert ok.tolist() == [[True, False], [False, False]]
     assert exp.line_agreement(ground, aerial, T, 5.0, 10.0)[1, 1]
+
+
+def primitive_set(n_points: int, n_lines: int, seed: int = 0):
+    import torch
+
+    from meridian_torch.types import PrimitiveSet
+
+    g = torch.Generator().manual_seed(seed)
+    desc = torch.nn.functional.normalize(torch.randn(n_points + n_lines, 8, generator=g), dim=1)
+    start = torch.rand(n_lines, 2, generator=g) * 50
+    return PrimitiveSet(
+        points_xy=torch.rand(n_points, 2, generator=g) * 40 - 10,
+        point_descriptors=desc[:n_points],
+        point_segment_ids=torch.arange(n_points),
+        line_endpoints=torch.stack([start, start + torch.rand(n_lines, 2, generator=g) * 10 + 1], 1),
+        line_kinds=torch.randint(0, 3, (n_lines,), generator=g),
+        line_descriptors=desc[n_points:],
+        line_segment_ids=torch.arange(n_points, n_points + n_lines),
+    )
+
+
+def rows_of(x, table) -> np.ndarray:
+    """For each row of x (n, ...) the index of an equal row of table, -1 if none."""
+    x, table = np.asarray(x), np.asarray(table)
+    width = int(np.prod(x.shape[1:]))
+    x, table = x.reshape(len(x), width), table.reshape(len(table), width)
+    if len(table) == 0:
+        return np.full(len(x), -1)
+    equal = (x[:, None] == table[None]).all(-1)
+    return np.where(equal.any(1), equal.argmax(1), -1)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 40), st.integers(0, 30), st.floats(0, 1), st.floats(0, 0.6), st.integers(0, 10**6))
+def test_perturbation_respects_fractions_and_keeps_copies(n_points, n_lines, missing, spurious, seed) -> None:
+    from meridian_torch.evaluation.perturbation import Perturbation, perturb_primitives
+
+    p = primitive_set(n_points, n_lines, seed % 97)
+    out = perturb_primitives(p, Perturbation(missing, spurious, 0.0), seed)
+    for n, xy, kept_xy, desc, kept_desc in (
+        (n_points, out.points_xy, p.points_xy, out.point_descriptors, p.point_descriptors),
+        (n_lines, out.line_endpoints, p.line_endpoints, out.line_descriptors, p.line_descriptors),
+    ):
+        n_kept, n_spurious = n - round(missing * n), round(spurious * n)
+        assert len(xy) == len(desc) == n_kept + n_spurious
+        # Without noise the kept primitives are originals (distinct, in order); every descriptor is a copy.
+        kept = rows_of(xy[:n_kept], kept_xy)
+        assert (kept >= 0).all() and (np.diff(kept) > 0).all()
+        assert (rows_of(desc, kept_desc) >= 0).all()
+    corners = np.concatenate([p.points_xy.numpy(), p.line_endpoints.numpy().reshape(-1, 2)])
+    if len(corners):
+        n_kept = n_points - round(missing * n_points)
+        spurious_xy = out.points_xy[n_kept:].numpy()
+        assert (spurious_xy >= corners.min(0) - 1e-4).all() and (spurious_xy <= corners.max(0) + 1e-4).all()
+        n_kept = n_lines - round(missing * n_lines)
+        mid = out.line_endpoints[n_kept:].mean(1).numpy()
+        assert (mid >= corners.min(0) - 1e-4).all() and (mid <= corners.max(0) + 1e-4).all()
+        length = (out.line_endpoints[:, 1] - out.line_endpoints[:, 0]).norm(dim=-1).numpy()
+        original = (p.line_endpoints[:, 1] - p.line_endpoints[:, 0]).norm(dim=-1).numpy()
+        assert (np.abs(length[:, None] - original[None]).min(1) < 1e-3).all()
+    ids = np.concatenate([out.point_segment_ids.numpy(), out.line_segment_ids.numpy()])
+    assert len(np.unique(ids)) == len(ids)
+
+
+def test_perturbation_is_seeded_and_zero_is_identity() -> None:
+    from meridian_torch.evaluation.perturbation import Perturbation, parse_perturbation, perturb_primitives
+
+    p = primitive_set(30, 20)
+    heavy = parse_perturbation("missing=0.4, spurious=0.2,noise_m=1.0")
+    assert heavy == Perturbation(0.4, 0.2, 1.0)
+    a, b, c = (perturb_primitives(p, heavy, s) for s in (3, 3, 4))
+    for name in ("points_xy", "point_descriptors", "line_endpoints", "line_kinds", "line_descriptors"):
+        assert torch_equal(getattr(a, name), getattr(b, name))
+    assert not torch_equal(a.points_xy, c.points_xy)
+    assert perturb_primitives(p, parse_perturbation(""), 3) is p
+    for bad in ("missing=1.5", "outliers=0.2", "noise_m=x", "missing"):
+        try:
+            parse_perturbation(bad)
+        except ValueError:
+            continue
+        raise AssertionError(f"{bad!r} accepted")
+
+
+def torch_equal(a, b) -> bool:
+    return a.shape == b.shape and bool((a == b).all())
+
+
+def test_perturbation_noise_has_the_asked_spread() -> None:
+    from meridian_torch.evaluation.perturbation import Perturbation, perturb_primitives
+
+    p = primitive_set(2000, 1000)
+    out = perturb_primitives(p, Perturbation(noise_m=0.7), 0)
+    point_noise = (out.points_xy - p.points_xy).numpy().ravel()
+    line_noise = (out.line_endpoints - p.line_endpoints).numpy().ravel()
+    for noise in (point_noise, line_noise):  # 4000 samples: the sample std is within ~2 % of 0.7
+        assert abs(noise.std() - 0.7) < 0.05 and abs(noise.mean()) < 0.05
+
+
+def test_across_patch_success_ranks_all_patches_by_probability() -> None:
+    truth = se2(10.0, -4.0, 0.3)
+    wrong = se2(200.0, 0.0, 0.3)
+    T = np.stack([np.stack([truth, wrong]), np.stack([wrong, truth])])  # (2 patches, 2, 3, 3)
+    valid = np.ones((2, 2), bool)
+    # Patch 1's wrong pose is the most probable overall, patch 0's truth second.
+    prob = np.array([[0.5, 0.1], [0.6, 0.05]])
+    assert exp.across_patch_success(T, prob, valid, truth, 5.0, 5.0, (1, 2)) == {1: False, 2: True}
+    # An invalid hypothesis never ranks; a tie with a wrong one is not a success.
+    assert exp.across_patch_success(T, prob, np.array([[True, True], [False, True]]), truth, 5.0, 5.0, (1,)) == {1: True}
+    tie = np.array([[0.5, 0.1], [0.5, 0.05]])
+    assert exp.across_patch_success(T, tie, valid, truth, 5.0, 5.0, (1, 2)) == {1: False, 2: True}
+
+
+def test_decoy_patches_do_not_overlap_the_true_one() -> None:
+    x0, y0 = np.meshgrid(np.arange(0, 300, 30.0), np.arange(0, 300, 30.0))
+    bounds = np.stack([x0.ravel(), x0.ravel() + 60, y0.ravel(), y0.ravel() + 60], 1)
+    true = 44
+    a = exp.decoy_patches(bounds, true, 24, np.random.default_rng(1))
+    b = exp.decoy_patches(bounds, true, 24, np.random.default_rng(1))
+    assert (a == b).all() and len(np.unique(a)) == 24 and true not in a
+    t = bounds[true]
+    overlap_x = (bounds[a, 0] < t[1]) & (bounds[a, 1] > t[0])
+    overlap_y = (bounds[a, 2] < t[3]) & (bounds[a, 3] > t[2])
+    assert not (overlap_x & overlap_y).any()
+    try:
+        exp.decoy_patches(bounds, true, 100, np.random.default_rng(1))
+    except ValueError:
+        pass
+    else:
+        raise AssertionError("more decoys than patches apart were returned")
+
+
+def test_across_table_reports_per_patch_and_across() -> None:
+    tally = exp.Tally(n=2)
+    for k in range(2):
+        tally.add("Meridian", "unknown", (5.0, 5.0), {1: True, 5: True, 10: True, 25: True})
+        tally.add("Meridian", "unknown across", (5.0, 5.0), {1: k == 0, 5: True})
+    text = exp.format_across_table("x", tally, (5.0, 5.0), 24)
+    row = next(line for line in text.splitlines() if line.startswith("Meridian "))
+    assert [float(v) for v in row.split()[1:]] == [0.0, 0.0, 0.0, 100.0, 50.0, 100.0]
