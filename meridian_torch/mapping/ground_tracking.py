@@ -28,7 +28,8 @@ Speed (the tracker runs on the main thread for every frame): a frame's points ar
 per lattice and grouped by observation with one sort; a voxel's point never changes once set,
 so an occluded voxel that survived is only tested again against the voxels added since, and new
 occluded voxels against the whole cloud; centroid and extent are computed when first read after
-the cloud changed, and merging reads them only for pairs whose bounding boxes allow it.
+the cloud changed, and merging reads them only for the pairs that pass the box, cosine and IoM
+tests.
 """
 
 from __future__ import annotations
@@ -346,6 +347,7 @@ class SegmentTracker:
         cand_size = np.array([len(c.iom_keys) for c in candidates])
         iom = np.where(touch, inter / np.maximum(1, np.minimum(obs_size[:, None], cand_size[None])), 0.0)
         return association_scores(iom, cosine, cfg)
+
     def _life_cycle(self, t: float, camera_xyz: np.ndarray) -> None:
         cfg = self.cfg
         for seg in list(self.segments.values()):
