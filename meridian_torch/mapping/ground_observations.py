@@ -197,8 +197,9 @@ def group_largest_cluster(
     core_a, core_b = core[a], core[b]
     both = core_a & core_b
     graph = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
-    # query_pairs gives each pair once, so the conversion to CSR may skip summing duplicates (a
-    # sort of every row, half the time of connected_components, which needs no row order)
+    # the flag skips the duplicate-summing pass of the CSR conversion (a sort of every row, half
+    # the time of connected_components): query_pairs gives each pair once, and the component
+    # search needs no order within rows, the only other thing the flag claims
     graph.has_canonical_format = True
     _, label = connected_components(graph, directed=False)
     label = np.where(core, label, -1)
