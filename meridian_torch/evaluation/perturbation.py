@@ -90,19 +90,21 @@ def perturb_primitives(primitives: PrimitiveSet, perturbation: Perturbation, see
         np.stack([mid - half, mid + half], 1),
     ])
 
+    device = p.points_xy.device
+
     def rows(x: torch.Tensor, keep: np.ndarray, template: np.ndarray) -> torch.Tensor:
-        return x[torch.as_tensor(np.concatenate([keep, template]), dtype=torch.long)]
+        return x[torch.as_tensor(np.concatenate([keep, template]), dtype=torch.long, device=x.device)]
 
     def fresh(n: int, start: int) -> torch.Tensor:
-        return torch.arange(start, start + n, dtype=torch.int64)
+        return torch.arange(start, start + n, dtype=torch.int64, device=device)
 
-    keep_pt_t = torch.as_tensor(keep_pt, dtype=torch.long)
-    keep_ln_t = torch.as_tensor(keep_ln, dtype=torch.long)
+    keep_pt_t = torch.as_tensor(keep_pt, dtype=torch.long, device=device)
+    keep_ln_t = torch.as_tensor(keep_ln, dtype=torch.long, device=device)
     return PrimitiveSet(
-        points_xy=torch.as_tensor(new_pts, dtype=p.points_xy.dtype),
+        points_xy=torch.as_tensor(new_pts, dtype=p.points_xy.dtype, device=device),
         point_descriptors=rows(p.point_descriptors, keep_pt, tmpl_pt),
         point_segment_ids=torch.cat([p.point_segment_ids[keep_pt_t], fresh(len(tmpl_pt), next_id)]),
-        line_endpoints=torch.as_tensor(new_lns, dtype=p.line_endpoints.dtype),
+        line_endpoints=torch.as_tensor(new_lns, dtype=p.line_endpoints.dtype, device=device),
         line_kinds=rows(p.line_kinds, keep_ln, tmpl_ln),
         line_descriptors=rows(p.line_descriptors, keep_ln, tmpl_ln),
         line_segment_ids=torch.cat([p.line_segment_ids[keep_ln_t], fresh(len(tmpl_ln), next_id + len(tmpl_pt))]),
