@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
-from meridian_torch.backend.consistency import Edges, _affinity, _outer, sparse_affinity
+from meridian_torch.backend.consistency import Edges, _affinity, _features, sparse_affinity
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.planar import scalar_yaw_of
 from meridian_torch.geometry.se2 import se2_matrix
@@ -64,13 +64,14 @@ def synthetic_pool(n_submaps: int, per_submap: int, area_m: float, seed: int) ->
 def all_pairs_affinity(c: LoopClosureCandidates, cfg: BackendConfig, first_new: int, block_rows: int = 512) -> Edges:
     """The earlier implementation: every pair (i < j, j >= first_new) scored, in row blocks."""
     n = len(c)
+    features = _features(c)
     found: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     for a in range(0, n, block_rows):
         b = min(a + block_rows, n)
         col0 = max(a, first_new)
         if col0 >= n:
             continue
-        M = _affinity(_outer(c.select(torch.arange(a, b)), 1), _outer(c.select(torch.arange(col0, n)), 0), cfg)
+        M = _affinity(features[:, a:b, None], features[:, None, col0:n], cfg)
         M = M.triu(a - col0 + 1)
         i, j = torch.nonzero(M, as_tuple=True)
         found.append((i + a, j + col0, M[i, j]))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -50,25 +50,37 @@ class PairErrors:
     sigma_t: Tensor  # metres
 
 
-def _relative(T_rows: Tensor, T_cols: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """x, y, yaw of T_i^-1 T_j, elementwise over broadcastable (..., 3, 3) poses (no 3x3 products)."""
-    yaw_r, yaw_c = yaw_of(T_rows), yaw_of(T_cols)
-    dx = T_cols[..., 0, 2] - T_rows[..., 0, 2]
-    dy = T_cols[..., 1, 2] - T_rows[..., 1, 2]
-    c, s = torch.cos(yaw_r), torch.sin(yaw_r)
-    return c * dx + s * dy, -s * dx + c * dy, yaw_c - yaw_r
+# Rows of the per-candidate pair features (float64): every pair's errors need only these, and
+# the yaws with their cosines and sines are computed once per candidate instead of once per pair
+# (atan2 over millions of gathered 3x3 poses was most of the cost of a large pool).
+_WX, _WY, _WYAW, _WCOS, _WSIN, _OX, _OY, _OYAW, _OCOS, _OSIN, _LENGTH, _QUALITY, _SUBMAP = range(13)
 
 
-def _outer(c: LoopClosureCandidates, dim: int) -> LoopClosureCandidates:
-    """`c` with a unit axis inserted at `dim` (0 or 1) of every field, to broadcast rows against columns."""
-    return LoopClosureCandidates(**{f.name: getattr(c, f.name).unsqueeze(dim) for f in fields(c)})
+def _features(c: LoopClosureCandidates) -> Tensor:
+    """(13, N) pair features of the candidates (rows as above; feature-major, so that the features
+    of gathered candidates, `features[:, index]`, are contiguous rows)."""
+    world_yaw, odom_yaw = yaw_of(c.T_world_base), yaw_of(c.T_odom_base)
+    return torch.stack([
+        c.T_world_base[:, 0, 2], c.T_world_base[:, 1, 2], world_yaw, torch.cos(world_yaw), torch.sin(world_yaw),
+        c.T_odom_base[:, 0, 2], c.T_odom_base[:, 1, 2], odom_yaw, torch.cos(odom_yaw), torch.sin(odom_yaw),
+        c.path_length_m, c.quality, c.submap_index.to(torch.float64),
+    ])
 
 
-def _pair_errors(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
-    """Errors of the pairs (row, column), elementwise over the broadcast shape of the two sets."""
-    ox, oy, oyaw = _relative(rows.T_odom_base, cols.T_odom_base)
-    cx, cy, cyaw = _relative(rows.T_world_base, cols.T_world_base)
-    length = (rows.path_length_m - cols.path_length_m).abs()
+def _relative(rows: Tensor, cols: Tensor, x: int) -> tuple[Tensor, Tensor, Tensor]:
+    """x, y, yaw of T_i^-1 T_j for the pose whose features start at row x, elementwise over
+    broadcastable (13, ...) features."""
+    dx = cols[x] - rows[x]
+    dy = cols[x + 1] - rows[x + 1]
+    c, s = rows[x + 3], rows[x + 4]
+    return c * dx + s * dy, -s * dx + c * dy, cols[x + 2] - rows[x + 2]
+
+
+def _pair_errors(rows: Tensor, cols: Tensor, cfg: BackendConfig) -> PairErrors:
+    """Errors of the pairs (row, column) of (13, ...) features, elementwise over their broadcast shape."""
+    ox, oy, oyaw = _relative(rows, cols, _OX)
+    cx, cy, cyaw = _relative(rows, cols, _WX)
+    length = (rows[_LENGTH] - cols[_LENGTH]).abs()
     if not cfg.path_length_scaling:
         length = torch.zeros_like(length)
     return PairErrors(
@@ -85,18 +97,19 @@ def pair_errors(c: LoopClosureCandidates, cfg: BackendConfig) -> PairErrors:
     E = odom_rel^-1 cv_rel has yaw(E) = yaw(cv_rel) - yaw(odom_rel) and |xy(E)| =
     |xy(cv_rel) - xy(odom_rel)| (the rotation by -yaw(odom_rel) keeps the norm).
     """
-    return _pair_errors(_outer(c, 1), _outer(c, 0), cfg)
+    f = _features(c)
+    return _pair_errors(f[:, :, None], f[:, None], cfg)
 
 
-def _affinity(rows: LoopClosureCandidates, cols: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
-    """Fused affinity of the pairs (row, column), elementwise (broadcast), no diagonal handling."""
+def _affinity(rows: Tensor, cols: Tensor, cfg: BackendConfig) -> Tensor:
+    """Fused affinity of the pairs (row, column) of features, elementwise (broadcast), no diagonal handling."""
     e = _pair_errors(rows, cols, cfg)
     inside = (e.yaw_error < e.sigma_yaw) & (e.translation_error < e.sigma_t)
     log_k = -0.5 * (e.yaw_error / e.sigma_yaw).square() - 0.5 * (e.translation_error / e.sigma_t).square()
     s = torch.where(inside, torch.exp(0.5 * log_k), torch.zeros_like(log_k))
-    s = s.masked_fill(rows.submap_index == cols.submap_index, 0.0)
+    s = s.masked_fill(rows[_SUBMAP] == cols[_SUBMAP], 0.0)
     if cfg.fuse_quality:
-        s = (s * rows.quality * cols.quality).pow(1.0 / 3.0)
+        s = (s * rows[_QUALITY] * cols[_QUALITY]).pow(1.0 / 3.0)
     return s.masked_fill(s <= cfg.affinity_eps, 0.0)
 
 
@@ -105,13 +118,15 @@ def consistency_scores(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
     raw = cfg.model_copy(update={"fuse_quality": False, "affinity_eps": 0.0})
     # |xy(E)| of (i, j) and (j, i) differ slightly (E_ji is E_ij seen from the other end); score
     # each pair once, as i < j, like the reference's pair loop.
-    s = _affinity(_outer(c, 1), _outer(c, 0), raw).triu(1)
+    f = _features(c)
+    s = _affinity(f[:, :, None], f[:, None], raw).triu(1)
     return s + s.T
 
 
 def consistency_affinity(c: LoopClosureCandidates, cfg: BackendConfig) -> Tensor:
     """(N, N) dense CLIPPER affinity: cbrt(s q_i q_j) (or s), <= affinity_eps dropped, unit diagonal."""
-    M = _affinity(_outer(c, 1), _outer(c, 0), cfg).triu(1)
+    f = _features(c)
+    M = _affinity(f[:, :, None], f[:, None], cfg).triu(1)
     M = M + M.T
     M.diagonal().fill_(1.0)
     return M
@@ -141,19 +156,19 @@ def _cat_edges(parts: list[Edges]) -> Edges:
     return tuple(torch.cat(x) for x in zip(empty, *parts))  # type: ignore[return-value]
 
 
-def _pair_edges(c: LoopClosureCandidates, cfg: BackendConfig, i: Tensor, j: Tensor) -> Edges:
+def _pair_edges(features: Tensor, cfg: BackendConfig, i: Tensor, j: Tensor) -> Edges:
     """The non-zero affinities of the pairs (i, j), each scored with its lower index as the row."""
     lo, hi = torch.minimum(i, j), torch.maximum(i, j)
     parts = []
     for k in range(0, len(lo), _CHUNK_PAIRS):
         a, b = lo[k : k + _CHUNK_PAIRS], hi[k : k + _CHUNK_PAIRS]
-        v = _affinity(c.select(a), c.select(b), cfg)
+        v = _affinity(features[:, a], features[:, b], cfg)
         keep = v > 0
         parts.append((a[keep], b[keep], v[keep]))
     return _cat_edges(parts)
 
 
-def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, others: Tensor) -> Edges:
+def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig, mine: Tensor, others: Tensor) -> Edges:
     """Non-zero affinities between the candidates `mine` (one submap) and `others` (other submaps).
 
     For a candidate b of submap B, the pose it predicts for submap A's base is
@@ -183,27 +198,27 @@ def _submap_edges(c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, ot
         hits = tree.query_ball_point(query_xy[k : k + _CHUNK_QUERIES], query_radius[k : k + _CHUNK_QUERIES])
         counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
         flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-        parts.append(_pair_edges(c, cfg, mine[torch.from_numpy(flat)],
+        parts.append(_pair_edges(features, cfg, mine[torch.from_numpy(flat)],
                                  queries[k : k + _CHUNK_QUERIES].repeat_interleave(counts)))
-    return _cat_edges([*parts, _block_edges(c, cfg, mine, others[wide])])
+    return _cat_edges([*parts, _block_edges(features, cfg, mine, others[wide])])
 
 
-def _block_edges(c: LoopClosureCandidates, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
+def _block_edges(features: Tensor, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
     """The non-zero affinities of every pair of `rows` x `cols` (disjoint), each scored with its
     lower index as the row, by broadcasting (no gathers), a block of rows at a time."""
     parts = []
-    b = c.select(cols)
+    b = features[:, cols]
     step = max(1, _CHUNK_PAIRS // max(len(cols), 1))
     for k0 in range(0, len(rows) if len(cols) else 0, step):
         block = rows[k0 : k0 + step]
-        a = c.select(block)
+        a = features[:, block]
         lower = block[:, None] < cols[None, :]
         if bool(lower.all()):
-            M = _affinity(_outer(a, 1), _outer(b, 0), cfg)
+            M = _affinity(a[:, :, None], b[:, None], cfg)
         elif not bool(lower.any()):
-            M = _affinity(_outer(b, 1), _outer(a, 0), cfg).T
+            M = _affinity(b[:, :, None], a[:, None], cfg).T
         else:
-            M = torch.where(lower, _affinity(_outer(a, 1), _outer(b, 0), cfg), _affinity(_outer(b, 1), _outer(a, 0), cfg).T)
+            M = torch.where(lower, _affinity(a[:, :, None], b[:, None], cfg), _affinity(b[:, :, None], a[:, None], cfg).T)
         r, k = torch.nonzero(M, as_tuple=True)
         parts.append((torch.minimum(block[r], cols[k]), torch.maximum(block[r], cols[k]), M[r, k]))
     return _cat_edges(parts)
@@ -218,13 +233,14 @@ def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: 
     cannot be consistent), so time grows with the pairs of nearby predictions, not with N^2.
     """
     keys, group = _submap_groups(c)
+    features = _features(c)
     pending = torch.ones(len(keys), dtype=torch.bool)  # submaps whose pairs with the rest are not yet found
     parts = []
     for g in torch.unique(group[first_new:]).tolist():
         pending[g] = False
         others = torch.nonzero(pending[group] & (keys[group, 0] != keys[g, 0])).flatten()
         if len(others):
-            parts.append(_submap_edges(c, cfg, torch.nonzero(group == g).flatten(), others))
+            parts.append(_submap_edges(c, features, cfg, torch.nonzero(group == g).flatten(), others))
     i, j, v = _cat_edges(parts)
     keep = j >= first_new
     i, j, v = i[keep], j[keep], v[keep]
