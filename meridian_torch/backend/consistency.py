@@ -241,11 +241,18 @@ def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: 
         others = torch.nonzero(pending[group] & (keys[group, 0] != keys[g, 0])).flatten()
         if len(others):
             parts.append(_submap_edges(c, features, cfg, torch.nonzero(group == g).flatten(), others))
+    # A final pass over a long drive holds millions of edges: free each copy as the next is made.
     i, j, v = _cat_edges(parts)
+    del parts
     keep = j >= first_new
-    i, j, v = i[keep], j[keep], v[keep]
+    if not bool(keep.all()):
+        i, j, v = i[keep], j[keep], v[keep]
+    del keep
     order = torch.argsort(i * max(len(c), 1) + j)
-    return i[order], j[order], v[order]
+    i = i[order]
+    j = j[order]
+    v = v[order]
+    return i, j, v
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,8 @@ def dense_block(n: int, edges: Edges, members: Tensor) -> Tensor:
     li, lj, v = restrict_edges(n, edges, members)
     W = torch.zeros(len(members), len(members), dtype=v.dtype, device=v.device)
     W[li, lj] = v
-    return W + W.T
+    W[lj, li] = v  # in place: W + W.T would hold a second k x k matrix
+    return W
 
 
 def _symmetric_csr(n: int, i: Tensor, j: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
