@@ -177,9 +177,9 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     at most |o| * yaw error (o = odometry offset between the submaps), and a non-zero affinity
     needs yaw error < sigma_yaw and translation error < sigma_t. So only the candidates of A
     within sigma_t + |o| sigma_yaw of t_Q can pair with b: a radius query finds them. The yaw
-    error of a pair is the difference of the two candidates' T_world_odom headings, so the query's
-    hits whose headings differ by sigma_yaw or more are dropped before they are scored (most of
-    them before a fix: about 20 M hits for 0.1 M edges). Where that disk covers much of A's
+    error of a pair is the difference of the two candidates' T_world_odom headings, so A's
+    candidates are searched by heading bin, and hits whose headings differ by sigma_yaw or more are
+    dropped before they are scored (most of them before a fix: about 20 M hits for 0.1 M edges). Where that disk covers much of A's
     candidates (far-apart submaps: the noise grows with path length) scoring every pair is
     cheaper than the query, and gives the same edges.
     """
@@ -194,20 +194,41 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     xy = c.T_world_base[mine, :2, 2]
     extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
     wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
-    tree = cKDTree(xy.numpy())
-    queries, query_xy, query_radius = others[~wide], predicted[~wide].numpy(), radius[~wide].numpy()
+    queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
     # headings of T_world_odom; the margin covers rounding (the exact test is in the affinity)
     heading = features[_WYAW] - features[_OYAW]
     query_sigma_yaw = sigma_yaw[~wide] + 1e-9
+    # `mine` split by heading into bins at least the widest sigma_yaw wide: a query searches its
+    # own bin and the two beside it, which hold every heading within its sigma_yaw
+    n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
+    n_bins = n_bins if n_bins >= 3 else 1
+    mine_bin, query_bin = (_heading_bin(heading[x], n_bins) for x in (mine, queries))
     parts = []
-    for k in range(0, len(queries), _CHUNK_QUERIES):
-        hits = tree.query_ball_point(query_xy[k : k + _CHUNK_QUERIES], query_radius[k : k + _CHUNK_QUERIES])
-        counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
-        flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-        rows, cols = mine[torch.from_numpy(flat)], queries[k : k + _CHUNK_QUERIES].repeat_interleave(counts)
-        near = wrap_angle(heading[rows] - heading[cols]).abs() < query_sigma_yaw[k : k + _CHUNK_QUERIES].repeat_interleave(counts)
-        parts.append(_pair_edges(features, cfg, rows[near], cols[near]))
+    for b in range(n_bins):
+        members = mine[mine_bin == b]
+        near_bin = (query_bin - b) % n_bins
+        searching = torch.nonzero((near_bin <= 1) | (near_bin == n_bins - 1)).flatten() if n_bins > 1 else \
+            torch.arange(len(queries))
+        if len(members) == 0 or len(searching) == 0:
+            continue
+        tree = cKDTree(c.T_world_base[members, :2, 2].numpy())
+        for k in range(0, len(searching), _CHUNK_QUERIES):
+            q = searching[k : k + _CHUNK_QUERIES]
+            hits = tree.query_ball_point(query_xy[q].numpy(), query_radius[q].numpy())
+            counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
+            flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
+            rows, cols = members[torch.from_numpy(flat)], queries[q].repeat_interleave(counts)
+            near = wrap_angle(heading[rows] - heading[cols]).abs() < query_sigma_yaw[q].repeat_interleave(counts)
+            parts.append(_pair_edges(features, cfg, rows[near], cols[near]))
     return _cat_edges([*parts, _block_edges(features, cfg, mine, others[wide])])
+
+
+def _heading_bin(heading: Tensor, n_bins: int) -> Tensor:
+    """Bin 0..n_bins-1 of each heading (radians) on the circle cut into n_bins equal arcs."""
+    if n_bins == 1:
+        return torch.zeros(heading.shape, dtype=torch.int64)
+    arc = ((wrap_angle(heading) + math.pi) * (n_bins / (2.0 * math.pi))).floor().to(torch.int64)
+    return arc.clamp(0, n_bins - 1)
 
 
 def _block_edges(features: Tensor, cfg: BackendConfig, rows: Tensor, cols: Tensor) -> Edges:
