@@ -178,10 +178,10 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     needs yaw error < sigma_yaw and translation error < sigma_t. So only the candidates of A
     within sigma_t + |o| sigma_yaw of t_Q can pair with b: a radius query finds them. The yaw
     error of a pair is the difference of the two candidates' T_world_odom headings, so A's
-    candidates are searched by heading bin, and hits whose headings differ by sigma_yaw or more are
-    dropped before they are scored (most of them before a fix: about 20 M hits for 0.1 M edges). Where that disk covers much of A's
-    candidates (far-apart submaps: the noise grows with path length) scoring every pair is
-    cheaper than the query, and gives the same edges.
+    candidates are searched by heading bin, and hits whose headings differ by sigma_yaw or more
+    are dropped before they are scored (most of them before a fix: about 20 M hits for 0.1 M
+    edges). Where that disk covers much of A's candidates (far-apart submaps: the noise grows
+    with path length) scoring every pair is cheaper than the query, and gives the same edges.
     """
     offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
     predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
@@ -206,9 +206,11 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     parts = []
     for b in range(n_bins):
         members = mine[mine_bin == b]
-        near_bin = (query_bin - b) % n_bins
-        searching = torch.nonzero((near_bin <= 1) | (near_bin == n_bins - 1)).flatten() if n_bins > 1 else \
-            torch.arange(len(queries))
+        if n_bins > 1:
+            near_bin = (query_bin - b) % n_bins
+            searching = torch.nonzero((near_bin <= 1) | (near_bin == n_bins - 1)).flatten()
+        else:
+            searching = torch.arange(len(queries))
         if len(members) == 0 or len(searching) == 0:
             continue
         tree = cKDTree(c.T_world_base[members, :2, 2].numpy())

@@ -47,6 +47,7 @@ def _symmetric_csr(n: int, i: Tensor, j: Tensor, v: Tensor) -> tuple[Tensor, Ten
     edge at its peak.
     """
     index_dtype = torch.int32 if max(n, 2 * len(v)) < 2**31 else torch.int64
+    i, j = i.to(torch.int64), j.to(torch.int64)  # row * n + column overflows int32 indices
     rows = torch.cat([i, j])
     key = rows * n
     key += torch.cat([j, i])
