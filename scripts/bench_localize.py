@@ -288,21 +288,25 @@ class _FirstFrames:
 
 
 def _peak_stage_times():
-    """A stage table that also credits every rise of the process's peak RSS to the stage that had
-    just ended (the innermost one that ran while it rose): `peak_raised_mib` per stage path."""
+    """A stage table that also credits every rise of the process's peak RSS since it was made to
+    the next stage that ends (the innermost one running when the peak rose, or, for a rise outside
+    every stage, the next one to end): `peak_raised_mib` per stage path."""
     import resource
 
     from meridian_torch.core.timing import StageTimes
+
+    def peak_mib() -> float:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
     class PeakStageTimes(StageTimes):
         def __init__(self) -> None:
             super().__init__()
             self.peak_raised_mib: dict[str, float] = {}
-            self._peak = 0.0
+            self._peak = peak_mib()
 
         def add(self, path: str, seconds: float) -> None:
             super().add(path, seconds)
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+            peak = peak_mib()
             with self._lock:
                 if peak > self._peak:
                     self.peak_raised_mib[path] = self.peak_raised_mib.get(path, 0.0) + peak - self._peak
@@ -396,8 +400,9 @@ def report(results: list[tuple[str, dict]]) -> str:
     for label, r in results:
         raised = sorted(((r.get("stages") or {}).get("peak_raised_mib") or {}).items(), key=lambda kv: -kv[1])
         if raised:
-            lines.append(f"where the peak RSS rose, {label} (MiB the peak rose by while each stage ran, "
-                         "credited to the innermost stage; the rest of the peak is the process before):")
+            lines.append(f"where the peak RSS rose, {label} (MiB each rise of the peak is credited to the "
+                         "next stage to end, the innermost running; the rest of the peak is the process "
+                         "before the run):")
             lines.append("| stage | peak raised MiB |")
             lines.append("|---|---|")
             lines += [f"| {path} | {mib:.0f} |" for path, mib in raised[:8]]
