@@ -6,13 +6,17 @@ import numpy as np
 import torch
 
 from meridian_torch.config import GroundTrackingConfig
-from meridian_torch.mapping.ground_observations import FrameObservations, voxel_hash, voxel_unhash
+from meridian_torch.mapping.ground_observations import (
+    FrameObservations,
+    group_unique,
+    voxel_hash,
+    voxel_unhash,
+)
 from meridian_torch.mapping.ground_tracking import (
     SegmentStatus,
     SegmentTracker,
     TrackedSegment,
     association_scores,
-    group_unique,
     sorted_overlap,
 )
 

@@ -42,6 +42,8 @@ __all__ = [
     "voxel_hash",
     "voxel_unhash",
     "separate_groups",
+    "group_key_runs",
+    "group_unique",
     "group_voxel_downsample",
     "group_outlier_mask",
     "group_largest_cluster",
@@ -99,6 +101,24 @@ def voxel_unhash(keys: np.ndarray, voxel_m: float) -> np.ndarray:
     return (idx - VOXEL_INDEX_LIMIT + 0.5) * voxel_m
 
 
+def group_key_runs(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stable sort by (group, key): (order (N,), first (N,) bool, True where a sorted row starts a
+    run of equal (group, key); a run starts at its first occurrence)."""
+    order = np.lexsort((keys, groups))
+    k, g = keys[order], groups[order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (k[1:] != k[:-1]) | (g[1:] != g[:-1])
+    return order, first
+
+
+def group_unique(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`np.unique(return_index=True)` of every group's keys in one sort: (keys, groups, index of
+    each key's first occurrence), sorted by group, then key."""
+    order, first = group_key_runs(keys, groups)
+    at = order[first]
+    return keys[at], groups[at], at
+
+
 def group_voxel_downsample(
     values: np.ndarray, groups: np.ndarray, voxel_m: float, dims: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -108,13 +128,11 @@ def group_voxel_downsample(
     """
     if len(values) == 0:
         return values.reshape(0, values.shape[1]), groups[:0]
-    key = voxel_hash(values[:, :dims], voxel_m)
-    order = np.lexsort((key, groups))
-    key, g = key[order], groups[order]
-    start = np.flatnonzero(np.r_[True, (key[1:] != key[:-1]) | (g[1:] != g[:-1])])
-    counts = np.diff(np.r_[start, len(key)])
+    order, first = group_key_runs(voxel_hash(values[:, :dims], voxel_m), groups)
+    start = np.flatnonzero(first)
+    counts = np.diff(np.r_[start, len(order)])
     means = np.add.reduceat(values[order], start, axis=0) / counts[:, None]
-    return means, g[start]
+    return means, groups[order[start]]
 
 
 def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.ndarray:
@@ -179,14 +197,13 @@ def group_largest_cluster(
     cell = eps / 4.0
     dims = points.shape[1]
     key = voxel_hash(points, cell) if dims == 3 else voxel_hash(points[:, :2], cell)
-    order = np.lexsort((key, groups))
-    ks, gs = key[order], groups[order]
-    start = np.flatnonzero(np.r_[True, (ks[1:] != ks[:-1]) | (gs[1:] != gs[:-1])])
+    order, first = group_key_runs(key, groups)
+    start = np.flatnonzero(first)
     cell_of = np.empty(len(points), dtype=np.int64)
-    cell_of[order] = np.cumsum(np.r_[True, (ks[1:] != ks[:-1]) | (gs[1:] != gs[:-1])]) - 1
-    weight = np.diff(np.r_[start, len(ks)]).astype(np.float64)
+    cell_of[order] = np.cumsum(first) - 1
+    weight = np.diff(np.r_[start, len(order)]).astype(np.float64)
     rep = np.add.reduceat(points[order], start, axis=0) / weight[:, None]
-    rep_group = gs[start]
+    rep_group = groups[order[start]]
     n = len(rep)
 
     shifted = separate_groups(rep, rep_group, 10.0 * eps)

@@ -45,11 +45,12 @@ from meridian_torch.config import GroundTrackingConfig
 from meridian_torch.mapping.ground_observations import (
     FrameObservations,
     group_largest_cluster,
+    group_unique,
     voxel_hash,
     voxel_unhash,
 )
 
-__all__ = ["SegmentStatus", "TrackedSegment", "SegmentTracker", "sorted_overlap", "association_scores", "group_unique"]
+__all__ = ["SegmentStatus", "TrackedSegment", "SegmentTracker", "sorted_overlap", "association_scores"]
 
 _INVALID = 1e9
 _NO_ASSOCIATION = 1.0
@@ -132,16 +133,6 @@ def sorted_overlap(a: np.ndarray, b: np.ndarray) -> int:
     if len(a) > len(b):
         a, b = b, a
     return int(_in_sorted(a, b).sum())
-
-
-def group_unique(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`np.unique(return_index=True)` of every group's keys in one sort: (keys, groups, index of
-    each key's first occurrence), sorted by group, then key."""
-    order = np.lexsort((keys, groups))  # stable: a run starts at its first occurrence
-    k, g = keys[order], groups[order]
-    first = np.ones(len(k), dtype=bool)
-    first[1:] = (k[1:] != k[:-1]) | (g[1:] != g[:-1])
-    return k[first], g[first], order[first]
 
 
 def _neighbour_pairs(small: np.ndarray, large: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
