@@ -13,10 +13,11 @@ centre is nearest to the true base position among those containing it.
 
 Harder cases: `--perturb missing=0.4,spurious=0.2,noise_m=1.0` degrades every submap's
 primitives first (seeded, `meridian_torch.evaluation.perturbation`). Across patches
-(`--decoys N`, default 24): the submap is matched in one call against its true patch and N
-seeded random patches that do not overlap it (as place recognition would propose them); per
-patch = the true patch's own ranking, across = all hypotheses of all patches ranked by their
-probability (ties ranked against the truth), as the localizer compares them.
+(`--decoys N`, e.g. 24; default 0, the paper's one patch): the submap is matched in one call
+against its true patch and N seeded random patches that do not overlap it (as place recognition
+would propose them); per patch = the true patch's own ranking, across = all hypotheses of all
+patches ranked by their probability (ties ranked against the truth), as the localizer compares
+them.
 
 Inputs: a sequence folder with groundtruth.tum (e.g. written by `meridian-torch simulate`) and
 its aerial map (.mtm, from `meridian-torch build-map`), or `--simulate CONFIG` to write both
@@ -334,7 +335,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--verbose", action="store_true", help="per submap: true counterparts among the associations")
     p.add_argument("--perturb", default="",
                    help="degrade submap primitives first: missing=F,spurious=F,noise_m=M (fractions, metres)")
-    p.add_argument("--decoys", type=int, default=24, help="patches matched with the true one (0: the true one alone)")
+    p.add_argument("--decoys", type=int, default=0,
+                   help="patches matched with the true one, for the across-patch table (default 0: the true one "
+                   "alone, the paper's protocol)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
