@@ -119,6 +119,49 @@ def test_batched_topk_equals_loop(direction: str, seed: int, patches_per_chunk: 
         assert int(assoc.valid.sum(1).max()) <= k * (9 + 8)
 
 
+def with_shared_descriptors(s: PrimitiveSet, n_distinct: int, gen: torch.Generator) -> PrimitiveSet:
+    """`s` with every descriptor drawn from `n_distinct` vectors, as when primitives share their segment's."""
+    dim = s.line_descriptors.shape[1]
+    table = torch.nn.functional.normalize(torch.randn(n_distinct, dim, generator=gen, dtype=torch.float64), dim=1)
+    pick = lambda n: table[torch.randint(0, n_distinct, (n,), generator=gen)]  # noqa: E731
+    return PrimitiveSet(
+        points_xy=s.points_xy,
+        point_descriptors=pick(s.points_xy.shape[0]),
+        point_segment_ids=s.point_segment_ids,
+        line_endpoints=s.line_endpoints,
+        line_kinds=s.line_kinds,
+        line_descriptors=pick(s.line_endpoints.shape[0]),
+        line_segment_ids=s.line_segment_ids,
+    )
+
+
+@pytest.mark.parametrize("direction", ["ground_to_aerial", "union"])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_tied_similarities_do_not_depend_on_the_other_patches(direction: str, seed: int) -> None:
+    # Few distinct descriptors on both sides: most similarities tie, also at the k-th rank.
+    gen = torch.Generator().manual_seed(seed)
+    ground = with_shared_descriptors(random_set(10, 30, 8, gen), 3, gen)
+    patches = [with_shared_descriptors(random_set(n_p, n_l, 8, gen), 4, gen)
+               for n_p, n_l in ((6, 40), (25, 9), (11, 120), (2, 70))]
+    k = 5
+    together = putative_associations(ground, stack_primitive_sets(patches), k_prim=k, direction=direction, min_line_length_m=2.0)
+    ref = loop_reference(ground, patches, k, direction == "union", 2.0)  # stable sort: ties to the lower index
+    for p, patch in enumerate(patches):
+        alone = putative_associations(ground, stack_primitive_sets([patch]), k_prim=k, direction=direction, min_line_length_m=2.0)
+        n_points = patch.points_xy.shape[0]
+        assert torch.equal(patch_local_pairs(together, p, n_points), patch_local_pairs(alone, 0, n_points))
+        got = {tuple(x) for x in together.pairs[p][together.valid[p]].tolist()}
+        assert got == set(ref[p])
+
+
+def patch_local_pairs(assoc, row: int, n_patch_points: int) -> torch.Tensor:
+    """Valid pairs of one patch with aerial line indices offset by the patch's own point count, not the batch's."""
+    pairs = assoc.pairs[row][assoc.valid[row]].clone()
+    line = pairs[:, 0] >= assoc.n_ground_points
+    pairs[line, 1] -= assoc.n_aerial_points - n_patch_points
+    return pairs
+
+
 def test_min_line_length_filter_and_kinds() -> None:
     d = torch.eye(4, dtype=torch.float64)
     endpoints = torch.tensor(

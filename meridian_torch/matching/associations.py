@@ -118,6 +118,19 @@ def _type_pairs(
     )
 
 
+def _top_k_mask(values: torch.Tensor, k: int, dim: int) -> torch.Tensor:
+    """The `k` largest entries along `dim`, ties broken towards the lower index.
+
+    `torch.topk` breaks ties in an order that depends on the padded width, so a patch's pairs
+    depended on the other patches in the call; here only the k-th value comes from it.
+    """
+    kth = values.topk(k, dim=dim).values.narrow(dim, k - 1, 1)
+    above = values > kth
+    tied = values == kth
+    room = k - above.sum(dim=dim, keepdim=True, dtype=torch.int32)
+    return above | (tied & (tied.cumsum(dim=dim, dtype=torch.int32) <= room))
+
+
 def _chunk_pairs(
     ground_desc: torch.Tensor,
     ground_ok: torch.Tensor,
@@ -133,17 +146,23 @@ def _chunk_pairs(
     """
     n_patches, n_aerial = aerial_ok.shape
     n_ground = ground_ok.shape[0]
-    cosine = torch.einsum("gd,pad->pga", F.normalize(ground_desc, dim=-1), F.normalize(aerial_desc, dim=-1))
+    # Primitives of one segment share its descriptor, but a matrix product rounds equal columns
+    # differently by position and batch shape. Ranked in float64 rounded to float32, equal
+    # descriptors tie exactly and `_top_k_mask` breaks the tie by index, whatever the batch.
+    cosine = torch.einsum(
+        "gd,pad->pga", F.normalize(ground_desc.double(), dim=-1), F.normalize(aerial_desc.double(), dim=-1)
+    )
     usable = ground_ok[None, :, None] & aerial_ok[:, None, :]
-    ranked = cosine.masked_fill(~usable, float("-inf"))
+    ranked = cosine.float().masked_fill(~usable, float("-inf"))
+    cosine = cosine.to(ground_desc.dtype)
     # k is clipped to the size of the other side; picks that land on masked entries are dropped below.
     selected = torch.zeros_like(usable)
     k_aerial = min(k, n_aerial)
     if k_aerial > 0:
-        selected.scatter_(2, ranked.topk(k_aerial, dim=2).indices, True)
+        selected |= _top_k_mask(ranked, k_aerial, dim=2)
     k_ground = min(k, n_ground)
     if direction == "union" and k_ground > 0:
-        selected.scatter_(1, ranked.topk(k_ground, dim=1).indices, True)
+        selected |= _top_k_mask(ranked, k_ground, dim=1)
     selected &= usable
 
     flat = selected.reshape(n_patches, n_ground * n_aerial)
