@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -62,14 +63,20 @@ def loop_reference(ground: PrimitiveSet, patches: list[PrimitiveSet], k: int, un
             def cos(gi, ai, gd=gd, ad=ad):
                 return float(gd[gi] @ ad[ai])
 
+            jitter = associations.tie_break_jitter(gd.shape[0], ad.shape[0], torch.device("cpu"))
+
+            def rank_key(gi, ai, jitter=jitter):
+                # descending similarity as float32; exact ties by the fixed (ground, aerial) hash
+                return (-float(np.float32(cos(gi, ai))), -float(jitter[gi, ai]))
+
             g_ids = [i for i, ok in enumerate(g_ok) if ok]
             a_ids = [i for i, ok in enumerate(a_ok) if ok]
             for gi in g_ids:
-                for ai in sorted(a_ids, key=lambda a: -cos(gi, a))[:k]:
+                for ai in sorted(a_ids, key=lambda a: rank_key(gi, a))[:k]:
                     pairs[(gi + g_off, ai + a_off)] = cos(gi, ai)
             if union:
                 for ai in a_ids:
-                    for gi in sorted(g_ids, key=lambda g: -cos(g, ai))[:k]:
+                    for gi in sorted(g_ids, key=lambda g: rank_key(g, ai))[:k]:
                         pairs[(gi + g_off, ai + a_off)] = cos(gi, ai)
         out.append(pairs)
     return out
@@ -145,13 +152,26 @@ def test_tied_similarities_do_not_depend_on_the_other_patches(direction: str, se
                for n_p, n_l in ((6, 40), (25, 9), (11, 120), (2, 70))]
     k = 5
     together = putative_associations(ground, stack_primitive_sets(patches), k_prim=k, direction=direction, min_line_length_m=2.0)
-    ref = loop_reference(ground, patches, k, direction == "union", 2.0)  # stable sort: ties to the lower index
+    ref = loop_reference(ground, patches, k, direction == "union", 2.0)
     for p, patch in enumerate(patches):
         alone = putative_associations(ground, stack_primitive_sets([patch]), k_prim=k, direction=direction, min_line_length_m=2.0)
         n_points = patch.points_xy.shape[0]
         assert torch.equal(patch_local_pairs(together, p, n_points), patch_local_pairs(alone, 0, n_points))
         got = {tuple(x) for x in together.pairs[p][together.valid[p]].tolist()}
         assert got == set(ref[p])
+
+
+def test_ground_primitives_sharing_a_descriptor_take_different_tied_aerial_ones() -> None:
+    # One descriptor on each side: every similarity ties. Each ground point still gets k aerial
+    # points, but its own share of them, so together they cover far more than k.
+    gen = torch.Generator().manual_seed(7)
+    ground = with_shared_descriptors(random_set(12, 0, 8, gen), 1, gen)
+    patch = with_shared_descriptors(random_set(60, 0, 8, gen), 1, gen)
+    k = 4
+    assoc = putative_associations(ground, stack_primitive_sets([patch]), k_prim=k, direction="ground_to_aerial", min_line_length_m=2.0)
+    pairs = assoc.pairs[0][assoc.valid[0]]
+    assert torch.bincount(pairs[:, 0], minlength=12).tolist() == [k] * 12
+    assert pairs[:, 1].unique().numel() > 3 * k
 
 
 def patch_local_pairs(assoc, row: int, n_patch_points: int) -> torch.Tensor:

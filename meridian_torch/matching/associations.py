@@ -24,6 +24,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
+from meridian_torch.matching.particle_noise import mix, uniform
 from meridian_torch.types import LineKind, PrimitiveBatch, PrimitiveSet
 
 __all__ = ["Associations", "putative_associations", "line_keep_mask"]
@@ -85,6 +86,9 @@ def line_keep_mask(endpoints: torch.Tensor, kinds: torch.Tensor, min_length_m: f
     return long_enough & (length > 0)
 
 
+# Fixed salt of the tie-break hash (independent of every generator).
+_TIE_SALT = 0x7135
+
 # (patch, ground, aerial) similarities ranked at once. All 609 patches of a map before its fix
 # took up to 1.8 GiB in one piece; a patch's pairs do not depend on the other patches, so chunks
 # give the same pairs (the similarity product may round differently in the last bit).
@@ -118,17 +122,17 @@ def _type_pairs(
     )
 
 
-def _top_k_mask(values: torch.Tensor, k: int, dim: int) -> torch.Tensor:
-    """The `k` largest entries along `dim`, ties broken towards the lower index.
+def tie_break_jitter(n_ground: int, n_aerial: int, device: torch.device) -> torch.Tensor:
+    """(G, A) float64 in [0, 2^-40): a fixed hash of each (ground, aerial) index pair.
 
-    `torch.topk` breaks ties in an order that depends on the padded width, so a patch's pairs
-    depended on the other patches in the call; here only the k-th value comes from it.
+    Added to similarities rounded to float32, it orders exact ties (primitives of one segment
+    share its descriptor) without reordering distinct values above 2^-16: each ground primitive
+    takes its own pseudo-random share of a tied segment's primitives, the same whatever the
+    batch (`torch.topk` orders ties by padded width).
     """
-    kth = values.topk(k, dim=dim).values.narrow(dim, k - 1, 1)
-    above = values > kth
-    tied = values == kth
-    room = k - above.sum(dim=dim, keepdim=True, dtype=torch.int32)
-    return above | (tied & (tied.cumsum(dim=dim, dtype=torch.int32) <= room))
+    g = torch.arange(n_ground, device=device, dtype=torch.int64)[:, None]
+    a = torch.arange(n_aerial, device=device, dtype=torch.int64)[None, :]
+    return uniform(mix((g << 32) + a + _TIE_SALT), torch.float64) * 2.0**-40
 
 
 def _chunk_pairs(
@@ -146,23 +150,23 @@ def _chunk_pairs(
     """
     n_patches, n_aerial = aerial_ok.shape
     n_ground = ground_ok.shape[0]
-    # Primitives of one segment share its descriptor, but a matrix product rounds equal columns
-    # differently by position and batch shape. Ranked in float64 rounded to float32, equal
-    # descriptors tie exactly and `_top_k_mask` breaks the tie by index, whatever the batch.
+    # A matrix product rounds equal columns differently by position and batch shape: computed in
+    # float64 and rounded to float32, equal descriptors tie exactly, and the jitter orders them.
     cosine = torch.einsum(
         "gd,pad->pga", F.normalize(ground_desc.double(), dim=-1), F.normalize(aerial_desc.double(), dim=-1)
     )
     usable = ground_ok[None, :, None] & aerial_ok[:, None, :]
-    ranked = cosine.float().masked_fill(~usable, float("-inf"))
+    ranked = cosine.float().double() + tie_break_jitter(n_ground, n_aerial, cosine.device)
+    ranked.masked_fill_(~usable, float("-inf"))
     cosine = cosine.to(ground_desc.dtype)
     # k is clipped to the size of the other side; picks that land on masked entries are dropped below.
     selected = torch.zeros_like(usable)
     k_aerial = min(k, n_aerial)
     if k_aerial > 0:
-        selected |= _top_k_mask(ranked, k_aerial, dim=2)
+        selected.scatter_(2, ranked.topk(k_aerial, dim=2).indices, True)
     k_ground = min(k, n_ground)
     if direction == "union" and k_ground > 0:
-        selected |= _top_k_mask(ranked, k_ground, dim=1)
+        selected.scatter_(1, ranked.topk(k_ground, dim=1).indices, True)
     selected &= usable
 
     flat = selected.reshape(n_patches, n_ground * n_aerial)
