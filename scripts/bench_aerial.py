@@ -23,7 +23,10 @@ their peak RSS (VmHWM), time and whether the two files are byte for byte the sam
 Stages of the single-process build are timed from this script without touching library code: the
 mapper's segmenter, segment describer and global describer are wrapped in timing proxies, and
 `segments_to_primitives` (conversion) is wrapped where aerial_map looks it up. "other" is the
-rest (reading patches, mask -> world points, bookkeeping, stacking).
+rest (reading patches, mask -> world points, bookkeeping, stacking). --profile FILE also runs
+cProfile over the single-process build, timed by this process's CPU time (wall time on a shared
+machine charges other processes' load to whatever function was running), writes its stats to
+FILE and prints the functions taking most of it.
 With --workers N > 1 the same map is then built with N local worker processes, and with
 --engine ray also on a local Ray cluster with N CPUs (N actors); each is checked identical.
 Worker and cluster start-up (fresh interpreters importing torch, about 3 s; Ray's own services)
@@ -41,10 +44,12 @@ that map it.
 from __future__ import annotations
 
 import argparse
+import cProfile
 import dataclasses
 import filecmp
 import json
 import os
+import pstats
 import resource
 import shutil
 import subprocess
@@ -191,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tile-km", type=float, default=2.0, help="side of the --write-geotiff image, km")
     ap.add_argument("--assembly", type=float, nargs="+", default=None, metavar="KM2",
                     help="measure writing the map file from the part files of maps of these areas (km^2)")
+    ap.add_argument("--profile", type=Path, default=None,
+                    help="cProfile (CPU time) of the single-process build: stats to this file, top functions printed")
     ap.add_argument("--assembly-run", choices=["memory", "patchwise"], default=None,
                     help=argparse.SUPPRESS)  # one --assembly measurement, in a fresh process
     ap.add_argument("--assembly-out", type=Path, default=None, help=argparse.SUPPRESS)
@@ -331,13 +338,22 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
                 print(f"  {k}/{n} patches, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
             done[0] = k
 
+        profiler = cProfile.Profile(time.process_time) if args.profile is not None else None
         t0, cpu0 = time.perf_counter(), time.process_time()
         with TreePeak() as tree:
+            if profiler is not None:
+                profiler.enable()
             amap = build_aerial_map(ortho, mapper, progress=progress)
+            if profiler is not None:
+                profiler.disable()
         total, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     finally:
         aerial_map_module.segments_to_primitives = original
     rss_after = peak_rss_mib()
+    if profiler is not None:
+        profiler.dump_stats(args.profile)
+        print(f"\ncProfile (CPU time, profiler overhead included) written to {args.profile}; by own time:")
+        pstats.Stats(str(args.profile)).sort_stats("tottime").print_stats(20)
 
     n_patches = len(amap.patches)
     per_patch = total / n_patches
