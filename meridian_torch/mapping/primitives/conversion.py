@@ -12,10 +12,8 @@ from scipy.spatial import ConvexHull, QhullError
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.primitives.line_fusion import fuse_indexed_lines
 from meridian_torch.mapping.primitives.outline import (
-    RasterFrame,
     alpha_shape_outline,
     inside_box,
-    mask_outline,
     signed_area,
     simplified_outline_edges,
 )
@@ -63,29 +61,8 @@ def _diameter(points: np.ndarray) -> float:
     return float(np.sqrt(((hull[:, None, :] - hull[None, :, :]) ** 2).sum(-1).max()))
 
 
-def _outline(
-    points: np.ndarray, alpha: float, cfg: PrimitiveConfig, pixels: np.ndarray | None, frame: RasterFrame | None
-) -> np.ndarray | None:
-    """The segment's outline ring, counter-clockwise: from its pixel mask if given, else the alpha shape."""
-    if pixels is None:
-        return alpha_shape_outline(points, alpha, cfg.alpha_grid_m, cfg.alpha_max_points)
-    ring_px = mask_outline(pixels[:, 0], pixels[:, 1], 1.0 / alpha / frame.pixel_size_m)
-    if ring_px is None:
-        return None
-    ring = frame.centres(ring_px[:, 0], ring_px[:, 1])
-    if signed_area(ring) < 0:
-        ring = ring[::-1]
-    # Start where the alpha shape's ring starts (Douglas-Peucker keeps the first vertex): at the
-    # lowest (x, y) vertex if its lower neighbour follows it, else at the vertex after it.
-    first = int(np.lexsort((ring[:, 1], ring[:, 0]))[0])
-    after, before = ring[(first + 1) % len(ring)], ring[first - 1]
-    start = first if (after[0], after[1]) < (before[0], before[1]) else (first + 1) % len(ring)
-    return np.ascontiguousarray(np.roll(ring, -start, axis=0))
-
-
 def _convert_segment(
-    points: np.ndarray, area: float | None, box: np.ndarray, cfg: PrimitiveConfig,
-    pixels: np.ndarray | None = None, frame: RasterFrame | None = None,
+    points: np.ndarray, area: float | None, box: np.ndarray, cfg: PrimitiveConfig
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Classify one segment: (point (2,) or None, lines (n, 2, 2) or None)."""
     if area is not None and area < cfg.min_area_m2:  # the outline cannot rescue it: skip that cost
@@ -93,7 +70,7 @@ def _convert_segment(
     alpha = cfg.alpha
     if cfg.alpha_ref_size_m is not None:
         alpha *= min(1.0, cfg.alpha_ref_size_m / max(_diameter(points), 1e-9))
-    outline = _outline(points, alpha, cfg, pixels, frame)
+    outline = alpha_shape_outline(points, alpha, cfg.alpha_grid_m, cfg.alpha_max_points)
     if area is None:
         if outline is not None:
             area = abs(signed_area(outline))
@@ -149,18 +126,13 @@ def segments_to_primitives(
     areas_m2: np.ndarray | None = None,
     border_box: BorderBox | np.ndarray | None = None,
     segment_ids: Sequence[int] | np.ndarray | None = None,
-    segment_pixels: Sequence[np.ndarray] | None = None,
-    raster_frame: RasterFrame | None = None,
 ) -> PrimitiveSet:
     """Convert S segments (point sets (K, 2) in metres) with descriptors (S, D) to points and lines.
 
     `areas_m2` (S,) overrides the outline area (aerial: pixel-count area). `border_box` is
     (x_min, x_max, y_min, y_max) in the points' frame, or (S, 4) per segment (segments of several
     sub-crops converted and fused in one call); primitives must lie `border_margin_m` inside it.
-    None means unbounded (ground). `segment_ids` default to 0..S-1. Raster segments (aerial) may
-    give their pixels: `segment_pixels` (S,) of (K, 2) (row, col) indices of the pixel grid
-    `raster_frame` (in the points' frame); their outline is then the boundary of the mask closed
-    by the alpha-shape radius (`outline.mask_outline`), not the alpha shape of the points. Points and lines inherit
+    None means unbounded (ground). `segment_ids` default to 0..S-1. Points and lines inherit
     their segment's normalized descriptor; fused lines the length-weighted mean, normalized,
     and the id of the segment contributing most of their length. Everything stays in the
     caller's frame; floating outputs take the descriptor dtype (float32 if it is not floating).
@@ -176,8 +148,6 @@ def segments_to_primitives(
         raise ValueError(f"segment_ids: expected {n_seg} ids")
     if areas_m2 is not None and np.shape(areas_m2) != (n_seg,):
         raise ValueError(f"areas_m2: expected shape ({n_seg},)")
-    if segment_pixels is not None and (len(segment_pixels) != n_seg or raster_frame is None):
-        raise ValueError(f"segment_pixels: expected {n_seg} pixel arrays and their raster_frame")
     boxes = _border_boxes(border_box, n_seg, cfg.border_margin_m)
 
     point_xy, point_seg, line_ep, line_seg = [], [], [], []
@@ -186,8 +156,7 @@ def segments_to_primitives(
         if len(pts) == 0:
             continue
         area = None if areas_m2 is None else float(areas_m2[s])
-        pixels = None if segment_pixels is None else segment_pixels[s]
-        point, lines = _convert_segment(pts, area, boxes[s], cfg, pixels, raster_frame)
+        point, lines = _convert_segment(pts, area, boxes[s], cfg)
         if point is not None:
             point_xy.append(point)
             point_seg.append(s)

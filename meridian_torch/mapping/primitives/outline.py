@@ -1,19 +1,14 @@
-"""Outline of a segment: the alpha shape of its points on a grid, or (raster segments) the boundary
-of its pixel mask closed by a disc; and the outline's edges inside the border box, optionally
-simplified by Douglas-Peucker."""
+"""Outline of a segment's points: the alpha shape on a grid, and its edges inside the border box,
+optionally simplified by Douglas-Peucker."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import shapely
 from scipy.spatial import Delaunay, QhullError
 
-__all__ = [
-    "RasterFrame", "alpha_shape_outline", "inside_box", "mask_outline", "signed_area", "simplified_outline_edges",
-]
+__all__ = ["alpha_shape_outline", "inside_box", "signed_area", "simplified_outline_edges"]
 
 # Only grid points at most this many cells from an empty cell are triangulated. A triangle with
 # an empty circumcircle wider than a cell has its vertices next to empty cells, so the triangles
@@ -159,114 +154,6 @@ def alpha_shape_outline(
     if signed_area(ring) < 0:
         ring = ring[::-1]
     return np.ascontiguousarray(ring)
-
-
-@dataclass(frozen=True)
-class RasterFrame:
-    """A north-up pixel grid in a metric frame: pixel (row, col) is centred at
-    (x0 + (col + 0.5) * pixel_size_m, y0 - (row + 0.5) * pixel_size_m)."""
-
-    x0: float
-    y0: float
-    pixel_size_m: float
-
-    def centres(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """(K, 2) x, y of the pixels' centres."""
-        return np.stack([self.x0 + (cols + 0.5) * self.pixel_size_m, self.y0 - (rows + 0.5) * self.pixel_size_m], axis=1)
-
-
-def mask_outline(rows: np.ndarray, cols: np.ndarray, radius_px: float) -> np.ndarray | None:
-    """Outline of a raster segment given by its pixels (row, col indices), or None.
-
-    The alpha shape's raster counterpart, without a triangulation: the pixel centres are closed
-    by a disc of `radius_px` (the alpha-shape radius 1/alpha in pixels: gaps and notches
-    narrower than twice it are filled, as triangles of circumradius < 1/alpha fill them) on a
-    grid of half pixels, and the boundary of the closed set is traced through those of its
-    cells that are pixel centres (chords across filled notches, like the alpha shape's edges).
-    Close to the alpha shape of the pixel centres, not equal (tests/test_mask_outline.py). Returns
-    the exterior ring's K vertices (K, 2) as (row, col) pixel indices (float), implicitly
-    closed, holes filled; None if the outline is not one polygon (several pieces, or pieces
-    joined only by a line of pixels) or encloses no area, where the alpha shape gives none.
-    """
-    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-    if len(rows) < 3:
-        return None
-    # On a grid of half pixels: pixel centres at even positions, the disc's centre at any; on the
-    # pixel grid itself a gap of 7 pixels (2.1 m > 2 / alpha) would close.
-    radius = 2.0 * radius_px
-    pad = int(np.ceil(radius)) + 2  # the closing never reaches the crop's edge
-    r0, c0 = rows.min(), cols.min()
-    shape = (2 * int(rows.max() - r0) + 2 * pad + 1, 2 * int(cols.max() - c0) + 2 * pad + 1)
-    centres = np.ones(shape, dtype=np.uint8)
-    centres[2 * (rows - r0) + pad, 2 * (cols - c0) + pad] = 0
-    # closing by the disc: dilation = within the radius of a centre, erosion = farther than the
-    # radius from every cell the dilation missed (exact Euclidean distances)
-    dilated = (cv2.distanceTransform(centres, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= radius).astype(np.uint8)
-    closed = (cv2.distanceTransform(dilated, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius).astype(np.uint8)
-    contours, _ = cv2.findContours(_with_area(closed), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if len(contours) != 1:
-        return None
-    ring = contours[0][:, 0, ::-1].astype(np.int64)  # OpenCV points are (x, y) = (col, row)
-    # Only the pixel centres are vertices: the boundary crosses a filled notch along the chord
-    # between its ends, as an alpha shape's edge does, not along the disc's arc.
-    ring = ring[centres[ring[:, 0], ring[:, 1]] == 0]
-    # Lines of pixels (spurs, bridges) enclose nothing: the alpha shape has no triangle on
-    # collinear points, so it drops a spur and splits at a bridge. The traced boundary runs
-    # along such a line and back, so it visits its pixels twice; a ring without repeated
-    # pixels has none.
-    width = shape[1]
-    key = ring[:, 0] * width + ring[:, 1]
-    if len(ring) >= 3 and np.bincount(key).max() > 1:
-        key = np.asarray(_without_spurs(key.tolist()), dtype=np.int64)
-        ring = np.stack([key // width, key % width], axis=1)
-        if len(ring) >= 3 and len(np.unique(key)) < len(key):  # bridges or pinches remain: GEOS splits them
-            parts = shapely.get_parts(shapely.make_valid(shapely.Polygon(ring)))
-            polygons = [p for p in parts if isinstance(p, shapely.Polygon) and p.area > 0]
-            if len(polygons) != 1:
-                return None
-            ring = shapely.get_coordinates(polygons[0].exterior)[:-1]
-    if len(ring) < 3 or signed_area(ring.astype(np.float64)) == 0:
-        return None
-    return (ring - pad) / 2 + np.array([r0, c0])
-
-
-def _with_area(mask: np.ndarray) -> np.ndarray:
-    """The cells of a 0/1 mask that are corners of a triangle of its cell centres: those in a 2 x 2
-    window holding at least 3 cells. A line one cell wide encloses no area: removed, as the
-    alpha shape has no triangle on collinear points (so a one-pixel rim between a hole and the
-    outside opens the hole, as there)."""
-    window = mask[:-1, :-1] + mask[1:, :-1] + mask[:-1, 1:] + mask[1:, 1:] >= 3
-    kept = np.zeros_like(mask)
-    for dr in (0, 1):
-        for dc in (0, 1):
-            kept[dr : dr + window.shape[0], dc : dc + window.shape[1]] |= window
-    return kept & mask
-
-
-def _without_spurs(ring: list[int]) -> list[int]:
-    """A closed ring of vertex keys without its out-and-back runs (a vertex followed by the one
-    before it: the tip of a spur) and repeated vertices, the seam included."""
-    out: list[int] = []
-    for k in ring:
-        if out and out[-1] == k:
-            continue
-        if len(out) >= 2 and out[-2] == k:  # out[-1] was a spur's tip
-            out.pop()
-            continue
-        out.append(k)
-    start = 0  # the same across the seam: out[start] follows out[-1]
-    while len(out) - start >= 3:
-        if out[-1] == out[start]:
-            out.pop()
-        elif out[-1] == out[start + 1]:  # out[start] is a tip
-            start += 1
-            out.pop()
-        elif out[-2] == out[start]:  # out[-1] is a tip
-            out.pop()
-            out.pop()
-        else:
-            break
-    return out[start:]
 
 
 def _simple_loops(edges: np.ndarray, n_points: int) -> list[np.ndarray] | None:
