@@ -18,6 +18,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.stats import chi2
 
 from meridian_torch.backend.frames import OnlineUpdate
 from meridian_torch.backend.localizer import Localizer, localize_offline
@@ -101,6 +102,7 @@ class World:
         self.submap_frames = [int(k) for k in np.searchsorted(path, np.arange(10.0, path[-1], spacing_m))]
         self.bad_submaps: set[int] = set()  # no correct hypothesis at all
         self.corrupt_submaps: set[int] = set()  # the correct hypothesis is shifted 25 m
+        self.shift_m: dict[int, float] = {}  # the correct hypothesis is shifted this far along x
         self.calls: list[tuple[int, bool]] = []  # (submap, with rotation prior)
 
     def submaps(self) -> list[GroundSubmap]:
@@ -166,7 +168,7 @@ class World:
             if inside and i not in self.bad_submaps:
                 rank = int(self.rng.integers(0, 2))
                 noise = self.rng.normal(0, [0.3, 0.3, math.radians(0.5)])
-                shift = np.array([25.0, 0.0]) if i in self.corrupt_submaps else np.zeros(2)
+                shift = np.array([25.0 if i in self.corrupt_submaps else self.shift_m.get(i, 0.0), 0.0])
                 theta[p, rank] = math.atan2(T_true[1, 0], T_true[0, 0]) + noise[2]
                 t[p, rank] = torch.as_tensor(T_true[:2, 2] + noise[:2] + shift)
         valid = torch.ones(P, L, dtype=torch.bool)
@@ -587,3 +589,35 @@ def test_auto_mode_above_the_exhaustive_limit_matches_the_coarse_search_candidat
         events = [loc.add_submap(s) for s in world.submaps()[:3]]
     assert [e.n_patches for e in events] == [3, 3, 3]
     assert times.calls["place recognition/coarse map"] == 1 and times.calls["place recognition/coarse search"] == 3
+
+
+def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int):
+    """The localizer after submaps 0..last_submap of a world whose submaps `shift_m` are shifted."""
+    world = World(seed=1, n_frames=400)
+    world.bad_submaps = {0, 1, 2, 3}
+    world.shift_m = shift_m
+    # loop-closure priors as tight as the scripted matcher's 0.3 m noise
+    loc = Localizer(make_map(), _cfg(online_gate_chi2=gate, prior_trans_sigma_m=0.5), world.odometry, world.times,
+                    matcher=world.matcher, online_covariance=True)
+    events = [loc.add_submap(s) for s in world.submaps()[: last_submap + 1]]
+    return world, loc, events
+
+
+def test_online_gate_holds_a_closure_that_disagrees_with_the_prediction() -> None:
+    # Submap 14's only correct-looking closure is 2.5 m off: within the consistency tolerance
+    # (3 m between neighbours), so CLIPPER accepts it, but outside the prediction's uncertainty.
+    world, loc, events = _gated_run(None, {14: 2.5}, 14)
+    assert events[9].fix_committed and 14 in loc._anchored
+    world, loc, events = _gated_run(chi2.ppf(0.99, 3), {14: 2.5}, 14)
+    assert 14 not in loc._anchored and 13 in loc._anchored
+    assert 14 in loc.pool.select(loc._pool_inliers().inliers).submap_index.tolist()  # still a CLIPPER inlier
+    # without the shift nothing is held
+    world, loc, events = _gated_run(chi2.ppf(0.99, 3), {}, 14)
+    assert set(range(4, 15)) <= set(loc._anchored)
+
+
+def test_online_gate_takes_closures_of_two_submaps_that_fail_it_together() -> None:
+    # Two successive submaps agree with each other and not with the prediction: the prediction may
+    # be what is wrong, so the gate lets both in.
+    world, loc, events = _gated_run(chi2.ppf(0.99, 3), {14: 2.5, 15: 2.5}, 15)
+    assert {14, 15} <= set(loc._anchored)

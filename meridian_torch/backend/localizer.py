@@ -37,6 +37,7 @@ with the full odometry pose, so z, roll and pitch are the odometry's.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Literal
@@ -59,7 +60,7 @@ from meridian_torch.backend.submap_matching import SubmapMatching
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.errors import ConfigError
-from meridian_torch.geometry.planar import yaw_of
+from meridian_torch.geometry.planar import wrap_angle, yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.match import match_submap
 from meridian_torch.types import AerialMap, GroundSubmap
@@ -136,6 +137,7 @@ class Localizer:
         self.state: Literal["pre", "post"] = "pre"
         self._updates: list[OnlineUpdate] = []
         self._online_graph = IncrementalPoseGraph(cfg.backend)  # started at the fix
+        self._anchored: dict[int, np.ndarray] = {}  # submap -> the loop closure (3, 3) in the online graph
         self.fix_submap_index: int | None = None
         self.fix_time: float | None = None
         self._fix_position = 0  # submaps added before the fix submap
@@ -239,6 +241,7 @@ class Localizer:
         pose anchors the online estimate from `available_time` on."""
         start = time.perf_counter()
         nodes, priors = self._prior_poses(inliers)
+        self._anchored = dict(zip(inliers.submap_index.tolist(), priors))
         n_nodes = max(n_nodes, self._online_graph.n_nodes)
         with stage("pose graph"):
             T_world_base, cov = self._online_graph.update(
@@ -247,6 +250,40 @@ class Localizer:
         self._timer.add("pose_graph", start)
         last = n_nodes - 1
         self._updates.append(OnlineUpdate(available_time, T_world_base @ np.linalg.inv(self._odom_se2[last]), last, cov))
+
+    def _prediction(self, update: OnlineUpdate, node: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The (3, 3) planar pose at frame `node` predicted by `update` (its anchor carried along the
+        odometry, backwards for a frame before the anchor's) and its (3, 3) covariance of (x, y, yaw),
+        world axes (`propagate_covariance`; None when the update has none)."""
+        lo, hi = sorted((update.node, node))
+        path = update.T_world_odom @ self._odom_se2[lo : hi + 1]
+        path = path if node >= update.node else path[::-1]  # from the anchor frame to `node`
+        cov = None if update.covariance is None else propagate_covariance(update.covariance, path, self.cfg.backend)
+        return path[-1], cov
+
+    def _gated(self, accepted: LoopClosureCandidates) -> LoopClosureCandidates:
+        """`accepted` without the loop closures, new to the online graph, whose innovation against the
+        latest update's prediction fails `backend.online_gate_chi2`; when closures of two or more
+        submaps fail it at once they are all kept (the prediction is what is wrong)."""
+        b = self.cfg.backend
+        update = self._updates[-1] if self._updates else None
+        if b.online_gate_chi2 is None or update is None or not len(accepted):
+            return accepted
+        nodes, priors = self._prior_poses(accepted)
+        submaps = accepted.submap_index.tolist()
+        prior_cov = np.diag([b.prior_trans_sigma_m**2, b.prior_trans_sigma_m**2, math.radians(b.prior_rot_sigma_deg) ** 2])
+        fails = np.zeros(len(accepted), dtype=bool)
+        for k, (submap, node, prior) in enumerate(zip(submaps, nodes, priors)):
+            anchored = self._anchored.get(submap)
+            if anchored is not None and np.allclose(anchored, prior):
+                continue
+            predicted, cov = self._prediction(update, int(node))
+            e = np.array([*(prior[:2, 2] - predicted[:2, 2]), wrap_angle(yaw_of(prior) - yaw_of(predicted))])
+            S = prior_cov if cov is None else prior_cov + cov
+            fails[k] = float(e @ np.linalg.solve(S, e)) > b.online_gate_chi2
+        if len({submaps[k] for k in np.flatnonzero(fails)}) >= 2:
+            return accepted
+        return accepted.select(torch.from_numpy(~fails))
 
     def _keep(self, keep: torch.Tensor) -> None:
         """Keep the pool's candidates `keep` (N,) bool, and the known edges between them."""
@@ -320,6 +357,7 @@ class Localizer:
         self._set_pool(LoopClosureCandidates.concat(searched) if searched else LoopClosureCandidates.empty(), None)
         self.archive = LoopClosureCandidates.empty()
         self._online_graph = IncrementalPoseGraph(self.cfg.backend)
+        self._anchored = {}
         self._attempt_cache = None
         self._updates.append(OnlineUpdate(available_time, np.full((3, 3), np.nan), n_nodes - 1, None))
 
@@ -381,7 +419,7 @@ class Localizer:
                 revoked = True
                 self._revoke(n_nodes, available_time)
             elif n_inliers:
-                self._anchor(self._accepted(sel), n_nodes, available_time)
+                self._anchor(self._gated(self._accepted(sel)), n_nodes, available_time)
                 self._commit(sel.inliers)
         event = LocalizerEvent(
             submap_index=submap.index,
@@ -432,12 +470,8 @@ class Localizer:
         which = self._update_of_frames()
         for k in np.flatnonzero(which >= 0):
             update = self._updates[which[k]]
-            if update.covariance is None:
-                continue
-            lo, hi = sorted((update.node, int(k)))
-            path = update.T_world_odom @ self._odom_se2[lo : hi + 1]
-            path = path if k >= update.node else path[::-1]  # from the anchor frame to frame k
-            out[k] = propagate_covariance(update.covariance, path, self.cfg.backend)
+            if update.covariance is not None:
+                out[k] = self._prediction(update, int(k))[1]
         return out
 
     def latest_estimate(self) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -450,11 +484,7 @@ class Localizer:
         update = self._updates[-1]
         k = len(self.frame_times) - 1
         T = lift_se2(update.T_world_odom @ self._odom_se2[k : k + 1], self.T_odom_base[k : k + 1])
-        cov = None
-        if update.covariance is not None:
-            path = update.T_world_odom @ self._odom_se2[update.node : k + 1]
-            cov = propagate_covariance(update.covariance, path, self.cfg.backend)
-        return self._to_world(T)[0], cov
+        return self._to_world(T)[0], self._prediction(update, k)[1]
 
     def _to_world(self, T_map_base: np.ndarray) -> np.ndarray:
         """(N, 4, 4) poses in the map frame -> world (float64; NaN rows stay NaN)."""

@@ -67,6 +67,15 @@ class BackendConfig(StrictModel):
     commit_delay_submaps: int = Field(
         default=2, ge=0, description="the most recent submaps keep their alternatives (reference delay)"
     )
+    online_gate_chi2: float | None = Field(
+        default=11.34,
+        gt=0,
+        description="after the fix, a new loop closure whose innovation against the online prediction at its frame "
+        "(squared Mahalanobis distance of x, y, yaw under the prediction's covariance plus the loop-closure prior's) "
+        "exceeds this is held out of the online pose graph, until closures of two or more submaps fail it at once "
+        "(then the prediction is what is wrong, and they are all taken); default: chi-square 99 % with 3 degrees of "
+        "freedom; null: no gate",
+    )
     online_window_submaps: int | None = Field(
         default=None,
         ge=1,
