@@ -241,36 +241,6 @@ def test_group_largest_cluster_matches_brute_force_dbscan(seed, n_groups, min_po
         assert np.array_equal(keep[groups == g], expected)
 
 
-@settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(1, 3), st.sampled_from([2, 3]))
-def test_group_largest_cluster_coarser_cells_match_brute_force_dbscan(seed, n_groups, cells_per_eps):
-    # as above on the coarser grid: points at eps / cells_per_eps cell centres, several per cell
-    # (cells of 0.5, exact in binary, so that no distance lands a rounding away from eps)
-    rng = np.random.default_rng(seed)
-    cell, min_points = 0.5, 6
-    eps = cell * cells_per_eps
-    clouds, groups = [], []
-    for g in range(n_groups):
-        blobs = [rng.integers(-2, 3, size=(rng.integers(1, 40), 3)) + rng.integers(-8, 9, 3)
-                 for _ in range(rng.integers(1, 4))]
-        cells = np.concatenate(blobs)
-        clouds.append((cells + 0.5) * cell)
-        groups.append(np.full(len(cells), g))
-    points, groups = np.concatenate(clouds), np.concatenate(groups)
-    keep, has = group_largest_cluster(points, groups, eps, min_points, cells_per_eps)
-    for g in range(n_groups):
-        clusters, _ = _dbscan_clusters(points[groups == g], eps, min_points)
-        in_many = sum((np.bincount(list(c), minlength=int((groups == g).sum())) for c in clusters),
-                      np.zeros((groups == g).sum(), dtype=int))
-        sizes = sorted((len(c) for c in clusters), reverse=True)
-        assume(in_many.max(initial=0) <= 1 and (len(sizes) < 2 or sizes[0] > sizes[1]))
-        assert has[g] == bool(clusters)
-        expected = np.zeros((groups == g).sum(), dtype=bool)
-        if clusters:
-            expected[list(max(clusters, key=len))] = True
-        assert np.array_equal(keep[groups == g], expected)
-
-
 def test_group_largest_cluster_reports_groups_without_cluster():
     points = np.array([[0.0, 0, 0], [5.0, 0, 0], [0.0, 0, 0.05], [0.02, 0, 0]])
     keep, has = group_largest_cluster(points, np.array([0, 0, 1, 1]), 0.5, 3)

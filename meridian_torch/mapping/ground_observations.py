@@ -4,7 +4,7 @@ For every mask of a frame (reference `Segmenter.segment`, paper III-A):
 1. erode it with an elliptical kernel (radius `erosion_px`) and back-project the valid depth
    pixels inside it on a `pixel_stride` grid (0 < depth < `max_depth_m`);
 2. voxel-downsample (global lattice floor(p / voxel_m)), remove statistical outliers and keep the
-   largest DBSCAN cluster (points binned to cells of eps / 3, `group_largest_cluster`);
+   largest DBSCAN cluster;
 3. mark *occluded* points, where the object may continue outside the view: the mask's pixels
    deeper than `occlusion_max_depth_m` (depth-cutoff band) or in the image-edge band
    (`edge_band`), back-projected at full resolution (the reference takes the deep points of the
@@ -181,21 +181,20 @@ def group_outlier_mask(points: np.ndarray, groups: np.ndarray, neighbours: int, 
 
 
 def group_largest_cluster(
-    points: np.ndarray, groups: np.ndarray, eps: float, min_points: int, cells_per_eps: int = 4
+    points: np.ndarray, groups: np.ndarray, eps: float, min_points: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """DBSCAN per group, keeping each group's largest cluster: (keep (N,), has_cluster (G,)).
 
-    For speed the points are first binned to a grid of eps / `cells_per_eps` cells; each occupied
-    cell is one point weighted by its count (neighbour counts and cluster sizes are weighted sums).
-    Distances are then off by at most a cell diagonal; on clouds voxelized at eps / 4 or finer
-    (e.g. 0.1 m voxels and eps >= 0.4 m) this changes few points. Border points join the cluster
-    of a neighbouring core point; noise is dropped. The neighbour search costs about the number
-    of cell pairs within eps, i.e. cells_per_eps ** 3 per cell.
+    For speed the points are first binned to a grid of eps / 4 cells; each occupied cell is one
+    point weighted by its count (neighbour counts and cluster sizes are weighted sums). Distances
+    are then off by at most a cell diagonal; on clouds voxelized at eps / 4 or finer (e.g.
+    0.1 m voxels and eps >= 0.4 m) this changes few points. Border points join the cluster of
+    a neighbouring core point; noise is dropped.
     """
     n_groups = int(groups.max()) + 1 if len(groups) else 0
     if len(points) == 0:
         return np.zeros(0, dtype=bool), np.zeros(n_groups, dtype=bool)
-    cell = eps / cells_per_eps
+    cell = eps / 4.0
     dims = points.shape[1]
     key = voxel_hash(points, cell) if dims == 3 else voxel_hash(points[:, :2], cell)
     order, first = group_key_runs(key, groups)
@@ -349,9 +348,7 @@ def frame_observations(
     values, groups = group_voxel_downsample(values, obs_m.astype(np.int64), clean.voxel_m)
     keep = group_outlier_mask(values[:, :3], groups, clean.outlier_neighbours, clean.outlier_std_ratio)
     values, groups = values[keep], groups[keep]
-    # DBSCAN on eps / 3 cells (eps / 4 elsewhere): observations 91 -> 73 ms CPU per frame on
-    # KITTI 09 at 480 x 270, submap scores unchanged within 0.5 points (README, issue 15)
-    keep, _ = group_largest_cluster(values[:, :3], groups, clean.dbscan_eps_m, clean.dbscan_min_points, 3)
+    keep, _ = group_largest_cluster(values[:, :3], groups, clean.dbscan_eps_m, clean.dbscan_min_points)
     values, groups = values[keep], groups[keep]
 
     # 3. occluded points: the mask's pixels (all, not strided or cleaned) in the depth-cutoff band
