@@ -264,7 +264,7 @@ class Localizer:
     def _gated(self, accepted: LoopClosureCandidates) -> LoopClosureCandidates:
         """`accepted` without the loop closures, new to the online graph, whose innovation against the
         latest update's prediction fails `backend.online_gate_chi2`; when closures of two or more
-        submaps fail it at once they are all kept (the prediction is what is wrong)."""
+        submaps fail it at once they are all kept (then the prediction may be what is wrong)."""
         b = self.cfg.backend
         update = self._updates[-1] if self._updates else None
         if b.online_gate_chi2 is None or update is None or not len(accepted):

@@ -73,7 +73,7 @@ class BackendConfig(StrictModel):
         description="after the fix, a new loop closure whose innovation against the online prediction at its frame "
         "(squared Mahalanobis distance of x, y, yaw under the prediction's covariance plus the loop-closure prior's) "
         "exceeds this is held out of the online pose graph, until closures of two or more submaps fail it at once "
-        "(then the prediction is what is wrong, and they are all taken); default: chi-square 99 % with 3 degrees of "
+        "(then the prediction may be what is wrong, and they are all taken); default: chi-square 99 % with 3 degrees of "
         "freedom; null: no gate",
     )
     online_window_submaps: int | None = Field(
