@@ -27,11 +27,11 @@ import argparse
 import json
 import os
 import resource
-import subprocess
-import sys
 import time
 import types
 from pathlib import Path
+
+from _tree_child import run_in_tree  # scripts/ is on sys.path when a script runs
 
 RESULT_TAG = "BENCH_GROUND_RESULT "
 REPO = Path(__file__).resolve().parents[1]
@@ -134,17 +134,6 @@ def _child_argv(args: argparse.Namespace) -> list[str]:
     return argv + (["--stage-cpu"] if args.stage_cpu else []) + ["--child"]
 
 
-def _child(argv: list[str], source: Path) -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(source) + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), *argv], env=env, stdout=subprocess.PIPE,
-                          text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"bench_ground: the run on {source} failed (exit {proc.returncode})")
-    line = next(x for x in proc.stdout.splitlines() if x.startswith(RESULT_TAG))
-    return json.loads(line[len(RESULT_TAG):])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", type=Path, nargs="?", default=None, help="sequence folder (default: the demo world)")
@@ -165,7 +154,7 @@ def main() -> None:
     results = []
     for k in range(args.rounds):
         for label, source in trees:
-            result = _child(_child_argv(args), source)
+            result = run_in_tree(__file__, _child_argv(args), source, RESULT_TAG)
             print(report(result), flush=True)
             results.append((f"{label} #{k + 1}" if args.rounds > 1 else label, result))
     if len(results) > 1:

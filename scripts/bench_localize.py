@@ -32,12 +32,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from _tree_child import run_in_tree  # scripts/ is on sys.path when a script runs
 
 RESULT_TAG = "BENCH_LOCALIZE_RESULT "
 REPO = Path(__file__).resolve().parents[1]
@@ -433,17 +434,6 @@ def _child_argv(args: argparse.Namespace, profile: bool) -> list[str]:
     return argv + ["--child"]
 
 
-def _child(argv: list[str], source: Path) -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(source) + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), *argv], env=env, stdout=subprocess.PIPE,
-                          text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"bench_localize: the run on {source} failed (exit {proc.returncode})")
-    line = next(x for x in proc.stdout.splitlines() if x.startswith(RESULT_TAG))
-    return json.loads(line[len(RESULT_TAG):])
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -473,9 +463,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not (args.sequence / "ground").is_dir():
         raise SystemExit(f"bench_localize: {args.sequence} is not a sequence folder (no ground/)")
-    results = [("this tree", _child(_child_argv(args, profile=True), REPO))]
+    results = [("this tree", run_in_tree(__file__, _child_argv(args, profile=True), REPO, RESULT_TAG))]
     if args.baseline_src is not None:
-        results.append(("baseline", _child(_child_argv(args, profile=False), args.baseline_src.resolve())))
+        baseline = run_in_tree(__file__, _child_argv(args, profile=False), args.baseline_src.resolve(), RESULT_TAG)
+        results.append(("baseline", baseline))
     print(report(results))
     if args.json is not None:
         args.json.write_text(json.dumps(dict(results), indent=2, default=float) + "\n")

@@ -42,9 +42,10 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import time
+
+from _tree_child import run_in_tree  # scripts/ is on sys.path when a script runs
 
 from meridian_torch.runtime import current_rss_mib, peak_rss_mib
 
@@ -306,22 +307,11 @@ def run_clipper_mode(args: argparse.Namespace) -> dict:
 
 def _child(args: argparse.Namespace, argv: list[str], mode: str, source: str | None = None) -> dict:
     """Runs `--mode mode` in a fresh interpreter; `source` = the package tree it imports (PYTHONPATH)."""
-    cmd = [sys.executable, os.path.abspath(__file__), *argv, "--mode", mode]
     # Passive OpenMP waiting: on a shared 2-core machine a second busy process otherwise makes every
     # 2-thread op wait out spinning/descheduled workers (measured: match_submap 1.4 s -> 34-42 s).
     env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads),
                OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
-    if source is not None:
-        env["PYTHONPATH"] = os.pathsep.join([source] + [p for p in [os.environ.get("PYTHONPATH")] if p])
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
-    if proc.returncode != 0:
-        sys.stderr.write(proc.stdout + proc.stderr)
-        raise SystemExit(f"child --mode {mode} failed with exit code {proc.returncode}")
-    for line in proc.stdout.splitlines()[::-1]:
-        if line.startswith(RESULT_TAG):
-            return json.loads(line[len(RESULT_TAG):])
-    sys.stderr.write(proc.stdout + proc.stderr)
-    raise SystemExit(f"child --mode {mode} printed no result")
+    return run_in_tree(__file__, [*argv, "--mode", mode], source, RESULT_TAG, env)
 
 
 def _median(values: list[float]) -> float:
