@@ -1,0 +1,70 @@
+"""The compiled Felzenszwalb segmentation against scikit-image's: the same labels, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from skimage.segmentation import felzenszwalb as skimage_felzenszwalb
+
+from meridian_torch.perception.classical.felzenszwalb import felzenszwalb
+
+
+def _assert_same_labels(image: np.ndarray, scale: float, sigma: float, min_size: int) -> None:
+    expected = skimage_felzenszwalb(image, scale=scale, sigma=sigma, min_size=min_size)
+    labels = felzenszwalb(image, scale=scale, sigma=sigma, min_size=min_size)
+    assert labels.dtype == np.int64 and labels.shape == expected.shape
+    assert np.array_equal(labels, expected), f"{int((labels != expected).sum())} pixels differ"
+
+
+def _image(kind: str, height: int, width: int, channels: int, seed: int) -> np.ndarray:
+    """Random float images; 'levels' and 'blocks' have many exactly equal edge costs (ties)."""
+    rng = np.random.default_rng(seed)
+    if kind == "noise":
+        return rng.random((height, width, channels))
+    if kind == "levels":  # three grey levels per channel, float32 like the segmenter's Lab/100
+        return (rng.integers(0, 3, (height, width, channels)) / 2).astype(np.float32)
+    # Flat 5x5 blocks: large zero-cost regions, and equal costs along every block border.
+    blocks = rng.integers(0, 4, (height // 5 + 1, width // 5 + 1, channels)) / 3
+    return np.repeat(np.repeat(blocks, 5, axis=0), 5, axis=1)[:height, :width]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    kind=st.sampled_from(["noise", "levels", "blocks"]),
+    height=st.integers(1, 30),
+    width=st.integers(1, 30),
+    channels=st.integers(1, 3),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.sampled_from([0.1, 1.0, 30.0, 300.0, 5000.0]),
+    sigma=st.sampled_from([0.0, 0.5, 0.8, 2.0]),
+    min_size=st.sampled_from([0, 1, 3, 20, 100]),
+)
+def test_labels_equal_skimage_on_random_images(kind, height, width, channels, seed, scale, sigma, min_size):
+    _assert_same_labels(_image(kind, height, width, channels, seed), scale, sigma, min_size)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 17, 3), (17, 1, 3), (2, 2, 3), (2, 2, 1), (1, 2, 2)])
+@pytest.mark.parametrize("min_size", [0, 2, 5])
+def test_labels_equal_skimage_on_tiny_images(shape, min_size):
+    _assert_same_labels(np.random.default_rng(1).random(shape), 1.0, 0.5, min_size)
+
+
+def test_labels_equal_skimage_on_flat_and_grey_images():
+    """All-zero costs (one constant image), a 2-D grey image, and a smooth segmenter-sized image."""
+    _assert_same_labels(np.full((20, 30, 3), 0.25), 10.0, 0.8, 5)
+    rng = np.random.default_rng(2)
+    _assert_same_labels(rng.random((25, 40)), 50.0, 0.8, 10)
+    yy, xx = np.mgrid[0:90, 0:160] / 40.0
+    smooth = np.stack([np.sin(xx + yy), np.cos(2 * xx), np.sin(3 * yy) * xx], axis=-1)
+    image = (smooth + 0.05 * rng.standard_normal(smooth.shape)).astype(np.float32)
+    for scale, sigma, min_size in [(55.5, 0.67, 28), (5.0, 0.3, 4), (500.0, 1.5, 60)]:
+        _assert_same_labels(image, scale, sigma, min_size)
+
+
+def test_rejects_bad_shape_and_sigma():
+    with pytest.raises(ValueError, match="shape"):
+        felzenszwalb(np.zeros((2, 3, 4, 5)))
+    with pytest.raises(ValueError, match="sigma"):
+        felzenszwalb(np.zeros((4, 4, 3)), sigma=-1.0)
