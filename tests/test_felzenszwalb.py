@@ -8,7 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from skimage.segmentation import felzenszwalb as skimage_felzenszwalb
 
-from meridian_torch.perception.classical.felzenszwalb import felzenszwalb
+from meridian_torch.perception.classical.felzenszwalb import (
+    _NO_TIES,
+    _OTHER_TIES,
+    _ZERO_TIES,
+    _sort_costs,
+    felzenszwalb,
+)
 
 
 def _assert_same_labels(image: np.ndarray, scale: float, sigma: float, min_size: int) -> None:
@@ -61,6 +67,50 @@ def test_labels_equal_skimage_on_flat_and_grey_images():
     image = (smooth + 0.05 * rng.standard_normal(smooth.shape)).astype(np.float32)
     for scale, sigma, min_size in [(55.5, 0.67, 28), (5.0, 0.3, 4), (500.0, 1.5, 60)]:
         _assert_same_labels(image, scale, sigma, min_size)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("scale", [1e-44, 1.0, 30.0])
+def test_zero_cost_ties_take_the_radix_order_only_when_it_cannot_matter(seed, scale):
+    """A row of runs of equal pixels: ties only at cost 0 (one row has no shared neighbours), so
+    the radix order is used, unless scale / n rounds to 0 in float32: zero-cost edges then need
+    not merge, min_size pairs pixels in edge order, and that order must be np.argsort's."""
+    rng = np.random.default_rng(seed)
+    row = np.repeat(rng.random((60, 3)), rng.integers(1, 5, 60), axis=0)[None]
+    costs = np.sqrt(np.sum((row[0, 1:] - row[0, :-1]) ** 2, axis=-1))
+    assert _sort_costs(costs)[2] == _ZERO_TIES
+    for min_size in (2, 3):
+        _assert_same_labels(row, scale, 0.0, min_size)
+
+
+def test_sort_costs_is_argsort_when_costs_are_distinct():
+    """Distinct costs, many sharing a float32 value (the insertion fix-up), in shuffled order."""
+    rng = np.random.default_rng(3)
+    close = 1.0 + np.arange(60) * 1e-12  # one float32 value, distinct float64 values
+    costs = rng.permutation(np.concatenate([rng.random(5000) * 2, close, [0.0], np.exp(-rng.random(300) * 50)]))
+    assert len(np.unique(costs)) == len(costs)
+    order, sorted_costs, ties = _sort_costs(costs)
+    assert ties == _NO_TIES
+    assert np.array_equal(order, np.argsort(costs)) and np.array_equal(sorted_costs, costs[order])
+    for n in (0, 1):
+        order, _, ties = _sort_costs(costs[:n])
+        assert ties == _NO_TIES and np.array_equal(order, np.arange(n))
+    # Thousands of distinct costs on one float32 value: the fix-up gives up, np.argsort will run.
+    assert _sort_costs(rng.permutation(1.0 + np.arange(3000) * 1e-12))[2] == _OTHER_TIES
+
+
+def test_sort_costs_reports_ties():
+    rng = np.random.default_rng(6)
+    costs = rng.permutation(np.concatenate([np.zeros(50), rng.random(200) + 0.1]))
+    order, _, ties = _sort_costs(costs)
+    assert ties == _ZERO_TIES
+    positive = costs[order] > 0
+    assert np.array_equal(costs[order], np.sort(costs))
+    assert np.array_equal(order[positive], np.argsort(costs)[positive])
+    for bad in (costs.max(), np.nan):  # a positive tie, NaN
+        with_bad = costs.copy()
+        with_bad[np.argmin(costs)] = bad
+        assert _sort_costs(with_bad)[2] == _OTHER_TIES
 
 
 def test_rejects_bad_shape_and_sigma():

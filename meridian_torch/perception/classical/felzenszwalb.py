@@ -1,12 +1,12 @@
 """Felzenszwalb-Huttenlocher graph segmentation, label-for-label equal to scikit-image's.
 
-`skimage.segmentation.felzenszwalb` spends most of its time outside the algorithm: it builds
-(E, 2) int64 edge arrays with np.c_/vstack, reorders them by cost, and unravels the union-find
-forest with repeated fancy indexing and np.unique. Here the smoothing, the edge costs and their
-np.argsort stay NumPy/SciPy calls with skimage's exact expressions (so costs and the tie order of
-equal costs are the same bits), and one compiled kernel does the rest: it derives each sorted
-edge's pixels from its index, runs both union-find passes and numbers the components.
-"""
+`skimage.segmentation.felzenszwalb` spends most of its time outside the algorithm: np.argsort
+of the edge costs, (E, 2) int64 edge arrays built with np.c_/vstack and reordered by cost, and
+the union-find forest unravelled with repeated fancy indexing and np.unique. Here the smoothing
+and the edge costs stay skimage's NumPy/SciPy expressions (the same bits), the costs are sorted
+by a radix sort whose order is provably np.argsort's (else np.argsort itself runs), and one
+compiled kernel derives each sorted edge's pixels from its index, runs both union-find passes
+and numbers the components."""
 
 from __future__ import annotations
 
@@ -32,15 +32,88 @@ def felzenszwalb(image: np.ndarray, scale: float = 1.0, sigma: float = 0.8, min_
     image = img_as_float64(np.atleast_3d(image))
     image = ndi.gaussian_filter(image, sigma=[sigma, sigma, 0], mode="reflect", cval=0, truncate=4.0)
     height, width = image.shape[:2]
+    if 4 * height * width >= 2**32:  # edge indices are packed into 32 bits, pixel indices into int32
+        raise ValueError(f"felzenszwalb: image of {height}x{width} pixels is too large (limit 2**30 pixels)")
     # Edge costs in skimage's order (right, down, down-right, up-right), same expressions.
     right = image[:, 1:, :] - image[:, : width - 1, :]
     down = image[1:, :, :] - image[: height - 1, :, :]
     dright = image[1:, 1:, :] - image[: height - 1, : width - 1, :]
     uright = image[1:, : width - 1, :] - image[: height - 1, 1:, :]
     costs = np.concatenate([np.sqrt(np.sum(d * d, axis=-1)).ravel() for d in (right, down, dright, uright)])
-    order = np.argsort(costs)
-    labels = _segment_sorted_edges(costs, order, height, width, float(scale) / 255.0, int(min_size))
+    scale = float(scale) / 255.0
+    order, sorted_costs, ties = _sort_costs(costs)
+    # Only np.argsort knows how it orders equal costs. Ties at cost 0 alone cannot change the
+    # labels: zero-cost edges come first and each joins two components (thresholds are >= the
+    # float32 scale / n > 0, as no component has merged a positive cost yet), so the partition
+    # after them does not depend on their order, and the min_size pass finds them inside one
+    # component. Any other tie is left to np.argsort.
+    if ties == _OTHER_TIES or (ties == _ZERO_TIES and not np.float32(scale / (height * width)) > 0):
+        order = np.argsort(costs)
+        sorted_costs = costs[order]
+    labels = _segment_sorted_edges(sorted_costs, order, height, width, scale, int(min_size))
     return labels.reshape(height, width)
+
+
+_NO_TIES, _ZERO_TIES, _OTHER_TIES = 0, 1, 2
+
+
+@numba.njit(cache=True, nogil=True)
+def _sort_costs(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(E,) edge indices sorting the non-negative `costs`, the sorted costs, and their ties.
+
+    With no ties the sorting order is unique, so it is np.argsort's. LSD radix sort (four 8-bit
+    digits) of each cost's float32 bits, carrying the edge index in the low 32 bits of one
+    uint64; float32 rounding is monotone, so only costs sharing a float32 value can be out of
+    order, and an insertion pass puts those in float64 order. _OTHER_TIES also reports NaN and a
+    fix-up too long to be worth finishing (the caller then uses np.argsort).
+    """
+    n = costs.shape[0]
+    keys = np.empty(n, dtype=np.uint64)
+    counts = np.zeros((4, 256), dtype=np.int64)
+    for i in range(n):
+        bits = np.uint64(np.float32(costs[i]).view(np.uint32))
+        keys[i] = (bits << np.uint64(32)) | np.uint64(i)
+        for digit in range(4):
+            counts[digit, (bits >> np.uint64(8 * digit)) & np.uint64(255)] += 1
+    spare = np.empty_like(keys)
+    offsets = np.empty(256, dtype=np.int64)
+    for digit in range(4):
+        total, one_value = 0, False
+        for d in range(256):
+            offsets[d] = total
+            total += counts[digit, d]
+            one_value |= counts[digit, d] == n
+        if one_value:
+            continue  # every key has this digit: the pass would move nothing
+        shift = np.uint64(32 + 8 * digit)
+        for i in range(n):
+            d = (keys[i] >> shift) & np.uint64(255)
+            spare[offsets[d]] = keys[i]
+            offsets[d] += 1
+        keys, spare = spare, keys
+    order = np.empty(n, dtype=np.int64)
+    sorted_costs = np.empty(n)
+    for i in range(n):
+        order[i] = keys[i] & np.uint64(0xFFFFFFFF)
+        sorted_costs[i] = costs[order[i]]
+    moves = 0
+    for i in range(1, n):
+        cost, edge = sorted_costs[i], order[i]
+        j = i
+        while j > 0 and sorted_costs[j - 1] > cost:
+            sorted_costs[j], order[j] = sorted_costs[j - 1], order[j - 1]
+            j -= 1
+        sorted_costs[j], order[j] = cost, edge
+        moves += i - j
+        if moves > n:
+            return order, sorted_costs, _OTHER_TIES
+    ties = _NO_TIES
+    for i in range(1, n):
+        if not sorted_costs[i - 1] < sorted_costs[i]:
+            if sorted_costs[i - 1] != 0.0 or sorted_costs[i] != 0.0:  # a positive tie, or NaN
+                return order, sorted_costs, _OTHER_TIES
+            ties = _ZERO_TIES
+    return order, sorted_costs, ties
 
 
 @numba.njit(cache=True, nogil=True)
@@ -91,8 +164,9 @@ def _edge_pixels(edge: int, height: int, width: int) -> tuple[int, int]:
 
 @numba.njit(cache=True, nogil=True)
 def _segment_sorted_edges(
-    costs: np.ndarray, order: np.ndarray, height: int, width: int, scale: float, min_size: int
+    sorted_costs: np.ndarray, order: np.ndarray, height: int, width: int, scale: float, min_size: int
 ) -> np.ndarray:
+    """Both union-find passes over the edges in sorted order; (H * W,) labels by first pixel."""
     n = height * width
     n_edges = order.shape[0]
     parent = np.arange(n, dtype=np.int32)
@@ -106,13 +180,19 @@ def _segment_sorted_edges(
         ra, rb = _find(parent, a), _find(parent, b)
         if ra == rb:
             continue
-        cost = costs[order[k]]
+        cost = sorted_costs[k]
         # skimage holds the two thresholds in C floats: round to float32 as it does.
         threshold = np.float32(min(internal[ra] + scale / size[ra], internal[rb] + scale / size[rb]))
         if cost < np.float64(threshold):
             internal[_union(parent, size, ra, rb)] = cost
-    # Components under min_size join a neighbour, cheapest edges first.
+    # Components under min_size join a neighbour, cheapest edges first. Components only grow, so
+    # an edge between pixels of two components already at min_size never merges: skip its finds.
+    small = np.empty(n, dtype=np.bool_)
+    for p in range(n):
+        small[p] = size[_find(parent, p)] < min_size
     for k in range(n_edges):
+        if not (small[pixel_a[k]] or small[pixel_b[k]]):
+            continue
         ra, rb = _find(parent, pixel_a[k]), _find(parent, pixel_b[k])
         if ra != rb and (size[ra] < min_size or size[rb] < min_size):
             _union(parent, size, ra, rb)
