@@ -14,7 +14,8 @@ For every mask of a frame (reference `Segmenter.segment`, paper III-A):
 
 All masks of a frame are processed together: the clouds are stored flat with an observation
 index (`point_obs`), and the point-cloud operations below work on such grouped clouds in one
-call (groups are shifted apart so one KD-tree serves them all).
+call (compiled kernels in `cloud_kernels` search each group on its own grid; groups shifted
+apart let one KD-tree serve them all).
 
 Points are moved to the odom frame before the voxel grid, so every voxel key of the pipeline
 lives on one global lattice.
@@ -26,14 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from meridian_torch.config import GroundObservationConfig
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
+from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances
 from meridian_torch.perception.protocols import SegmentDescriber, Segmenter
 
 __all__ = [
@@ -153,21 +153,26 @@ def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.nd
     return shifted
 
 
+def _group_starts(sorted_groups: np.ndarray) -> np.ndarray:
+    """(G + 1,) first row of every group of a sorted group column, and the row count."""
+    return np.r_[0, np.flatnonzero(sorted_groups[1:] != sorted_groups[:-1]) + 1, len(sorted_groups)]
+
+
 def group_outlier_mask(points: np.ndarray, groups: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
     """Statistical outlier removal per group: (N,) True for points whose mean distance to their
     `neighbours` nearest neighbours (same group) is at most the group's mean + std_ratio * std.
 
-    Points without any neighbour in their group are kept.
+    Points without any neighbour in their group are kept. Points are (N, 2) or (N, 3).
     """
     keep = np.ones(len(points), dtype=bool)
     if len(points) < 2:
         return keep
-    gap = 1e6  # no neighbour search ever crosses groups
-    shifted = separate_groups(points, groups, gap)
-    # an unbalanced (sliding midpoint) tree builds and queries faster; distances are the same
-    tree = cKDTree(shifted, balanced_tree=False)
-    dist, _ = tree.query(shifted, k=neighbours + 1, distance_upper_bound=gap / 2)
-    dist = dist[:, 1:]
+    # the exact k-NN distances on the groups moved apart as for the former KD-tree: the same
+    # coordinates give the same distances bitwise, hence the same mask
+    shifted = separate_groups(points, groups, 1e6)
+    order = np.argsort(groups, kind="stable")
+    dist = np.empty((len(points), neighbours))
+    dist[order] = group_knn_distances(np.ascontiguousarray(shifted[order]), _group_starts(groups[order]), neighbours)
     found = np.isfinite(dist)
     n_found = found.sum(axis=1)
     mean_d = np.where(found, dist, 0.0).sum(axis=1) / np.maximum(n_found, 1)
@@ -186,10 +191,13 @@ def group_largest_cluster(
     """DBSCAN per group, keeping each group's largest cluster: (keep (N,), has_cluster (G,)).
 
     For speed the points are first binned to a grid of eps / 4 cells; each occupied cell is one
-    point weighted by its count (neighbour counts and cluster sizes are weighted sums). Distances
-    are then off by at most a cell diagonal; on clouds voxelized at eps / 4 or finer (e.g.
-    0.1 m voxels and eps >= 0.4 m) this changes few points. Border points join the cluster of
-    a neighbouring core point; noise is dropped.
+    point (the mean of its points) weighted by its count (neighbour counts and cluster sizes are
+    weighted sums). Distances are then off by at most a cell diagonal; on clouds voxelized at
+    eps / 4 or finer (e.g. 0.1 m voxels and eps >= 0.4 m) this changes few points. A cell is core
+    when the weight within eps, its own included, reaches `min_points`; core cells within eps are
+    connected; a border cell joins the cluster of its nearest core cell within eps (ties: the
+    lowest cell in (group, voxel key) order); noise is dropped. The largest cluster by weight wins
+    (ties: the one whose first core cell comes first).
     """
     n_groups = int(groups.max()) + 1 if len(groups) else 0
     if len(points) == 0:
@@ -202,30 +210,10 @@ def group_largest_cluster(
     cell_of = np.empty(len(points), dtype=np.int64)
     cell_of[order] = np.cumsum(first) - 1
     weight = np.diff(np.r_[start, len(order)]).astype(np.float64)
-    rep = np.add.reduceat(points[order], start, axis=0) / weight[:, None]
+    rep = np.add.reduceat(points[order].astype(np.float64), start, axis=0) / weight[:, None]
     rep_group = groups[order[start]]
     n = len(rep)
-
-    shifted = separate_groups(rep, rep_group, 10.0 * eps)
-    pairs = cKDTree(shifted).query_pairs(eps, output_type="ndarray")
-    a, b = pairs[:, 0], pairs[:, 1]
-    count = weight + np.bincount(a, weight[b], minlength=n) + np.bincount(b, weight[a], minlength=n)
-    core = count >= min_points
-    core_a, core_b = core[a], core[b]
-    both = core_a & core_b
-    graph = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(n, n))
-    # the flag skips the duplicate-summing pass of the CSR conversion (a sort of every row, half
-    # the time of connected_components): query_pairs gives each pair once, and the component
-    # search needs no order within rows, the only other thing the flag claims
-    graph.has_canonical_format = True
-    _, label = connected_components(graph, directed=False)
-    label = np.where(core, label, -1)
-    # border cells: take the label of any core neighbour (the last one in pair order)
-    mixed = core_a != core_b
-    a, b = a[mixed], b[mixed]
-    for u, v in ((a, b), (b, a)):
-        attach = core[v]
-        label[u[attach]] = label[v[attach]]
+    label = group_dbscan_labels(rep, weight, _group_starts(rep_group), float(eps), float(min_points))
     clustered = label >= 0
     has_cluster = np.zeros(n_groups, dtype=bool)
     keep_cell = np.zeros(n, dtype=bool)
