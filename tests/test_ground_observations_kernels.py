@@ -1,0 +1,156 @@
+"""The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
+group, and the outlier mask built on them against the former KD-tree computation (bitwise)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances
+from meridian_torch.mapping.ground_observations import group_outlier_mask, separate_groups
+
+
+def _cloud(rng: np.random.Generator, sizes: list[int], dims: int) -> tuple[np.ndarray, np.ndarray]:
+    """Groups of blobs on a coarse lattice (duplicate points, zero distances) and continuous
+    points, some far out (long searches), in overlapping space."""
+    clouds = []
+    for size in sizes:
+        kind = rng.integers(3)
+        if kind == 0:  # lattice: many duplicates
+            p = rng.integers(-3, 4, (size, dims)) * 0.25
+        elif kind == 1:  # a flat blob, like ground
+            p = rng.normal(size=(size, dims)) * np.r_[2.0, 1.0, 0.05][:dims]
+        else:  # a blob with far points
+            p = rng.normal(size=(size, dims)) * 0.5
+            far = rng.random(size) < 0.1
+            p[far] += rng.normal(size=(int(far.sum()), dims)) * 20.0
+        clouds.append(p + rng.normal(size=dims))
+    points = np.concatenate(clouds) if clouds else np.zeros((0, dims))
+    return np.ascontiguousarray(points), np.repeat(np.arange(len(sizes)), sizes)
+
+
+def _starts(groups: np.ndarray, n_groups: int) -> np.ndarray:
+    return np.searchsorted(groups, np.arange(n_groups + 1))  # empty groups give empty runs
+
+
+def _dist2(p: np.ndarray) -> np.ndarray:
+    """All-pairs squared distances in cKDTree's order of operations (x, then y, then z)."""
+    d2 = np.zeros((len(p), len(p)))
+    for a in range(p.shape[1]):
+        d = p[:, None, a] - p[None, :, a]
+        d2 = d2 + d * d
+    return d2
+
+
+# ------------------------------------------------------------------------------------ k-NN
+
+_SIZES = st.lists(st.sampled_from([0, 1, 2, 5, 11, 40, 49, 120, 300]), min_size=0, max_size=5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), _SIZES, st.integers(0, 12), st.sampled_from([2, 3]))
+def test_group_knn_distances_match_all_pairs(seed, sizes, k, dims):
+    rng = np.random.default_rng(seed)
+    points, groups = _cloud(rng, sizes, dims)
+    dist = group_knn_distances(points, _starts(groups, len(sizes)), k)
+    assert dist.shape == (len(points), k)
+    for g in range(len(sizes)):
+        p = points[groups == g]
+        expected = np.full((len(p), k), np.inf)
+        if len(p):
+            d = np.sqrt(np.sort(_dist2(p), axis=1))[:, 1 : k + 1]  # drop the point itself
+            expected[:, : d.shape[1]] = d
+        assert np.array_equal(dist[groups == g], expected)  # bitwise
+
+
+def test_group_knn_distances_of_nothing():
+    assert group_knn_distances(np.zeros((0, 3)), np.array([0]), 4).shape == (0, 4)
+    assert group_knn_distances(np.zeros((0, 2)), np.array([0, 0, 0]), 4).shape == (0, 4)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), _SIZES, st.integers(1, 12), st.floats(0.0, 2.0), st.sampled_from([2, 3]))
+def test_group_outlier_mask_equals_kd_tree_mask(seed, sizes, neighbours, std_ratio, dims):
+    # the former computation: one KD-tree over the groups moved apart (unsorted groups here)
+    rng = np.random.default_rng(seed)
+    points, groups = _cloud(rng, sizes, dims)
+    perm = rng.permutation(len(points))
+    points, groups = points[perm], groups[perm]
+    keep = group_outlier_mask(points, groups, neighbours, std_ratio)
+    expected = np.ones(len(points), dtype=bool)
+    if len(points) >= 2:
+        shifted = separate_groups(points, groups, 1e6)
+        dist = cKDTree(shifted).query(shifted, k=neighbours + 1, distance_upper_bound=5e5)[0][:, 1:]
+        found = np.isfinite(dist)
+        mean_d = np.where(found, dist, 0.0).sum(axis=1) / np.maximum(found.sum(axis=1), 1)
+        has = found.any(axis=1)
+        for g in np.unique(groups[has]):
+            m = has & (groups == g)
+            expected[m] = mean_d[m] <= mean_d[m].mean() + std_ratio * mean_d[m].std()
+    assert np.array_equal(keep, expected)
+
+
+# ---------------------------------------------------------------------------------- DBSCAN
+
+
+def _dbscan_labels(p: np.ndarray, w: np.ndarray, eps: float, min_points: float) -> np.ndarray:
+    """Weighted DBSCAN by all pairs, with the kernel's rules: border points take the nearest core
+    point within eps (ties: lowest row); labels in the order of each cluster's first core row."""
+    d2 = _dist2(p)
+    near = d2 <= eps * eps
+    core = (near * w[None]).sum(axis=1) >= min_points
+    label = np.full(len(p), -1)
+    n_labels = 0
+    for i in np.flatnonzero(core):
+        if label[i] >= 0:
+            continue
+        label[i], stack = n_labels, [i]
+        while stack:
+            j = stack.pop()
+            for q in np.flatnonzero(near[j] & core & (label < 0)):
+                label[q] = n_labels
+                stack.append(q)
+        n_labels += 1
+    for i in np.flatnonzero(~core):
+        cand = np.flatnonzero(near[i] & core)
+        if len(cand):
+            label[i] = label[cand[np.argmin(d2[i, cand])]]  # argmin: the first (lowest) of ties
+    return label
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), _SIZES, st.integers(1, 12), st.sampled_from([2, 3]))
+def test_group_dbscan_labels_match_all_pairs(seed, sizes, min_points, dims):
+    rng = np.random.default_rng(seed)
+    points, groups = _cloud(rng, sizes, dims)
+    weight = rng.integers(1, 4, len(points)).astype(np.float64)  # integers: exact weight sums
+    eps = 0.6
+    label = group_dbscan_labels(points, weight, _starts(groups, len(sizes)), eps, float(min_points))
+    offset = 0
+    for g in range(len(sizes)):
+        m = groups == g
+        expected = _dbscan_labels(points[m], weight[m], eps, min_points)
+        expected[expected >= 0] += offset  # labels count on over the groups
+        assert np.array_equal(label[m], expected)
+        offset = max(offset, label[m].max(initial=-1) + 1)
+
+
+def test_group_dbscan_labels_of_nothing_and_lone_points():
+    assert len(group_dbscan_labels(np.zeros((0, 3)), np.zeros(0), np.array([0]), 0.5, 3.0)) == 0
+    points = np.array([[0.0, 0.0], [10.0, 0.0]])
+    label = group_dbscan_labels(points, np.array([3.0, 1.0]), np.array([0, 1, 2]), 0.5, 3.0)
+    assert label.tolist() == [0, -1]  # a point heavy enough is a cluster of its own
+
+
+def test_group_dbscan_border_tie_goes_to_the_lowest_row():
+    # X is exactly eps from a core point of each of two clusters and is not core itself
+    a1, a, x, b, b1 = [-0.9, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [2.9, 0.0]
+    weight = {tuple(a1): 4.0, tuple(a): 1.0, tuple(x): 1.0, tuple(b): 1.0, tuple(b1): 4.0}
+    for rows, x_cluster in (([a1, a, x, b, b1], 0), ([b1, b, x, a, a1], 0), ([a1, b, x, a, b1], 1)):
+        points = np.array(rows)
+        w = np.array([weight[tuple(r)] for r in rows])
+        label = group_dbscan_labels(points, w, np.array([0, 5]), 1.0, 5.0)
+        assert label[rows.index(x)] == x_cluster
+        assert np.array_equal(label, _dbscan_labels(points, w, 1.0, 5.0))
