@@ -315,9 +315,9 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         cell_of = np.empty(m, np.int64)
         for c in range(n_cells):
             cell_of[cell_start[c]: cell_start[c + 1]] = c
-        # neighbour cells (itself included), CSR
+        # neighbour cells (itself included), CSR; grown as needed (up to 125 a cell, ~25 on ground)
         nb_start = np.empty(n_cells + 1, np.int64)
-        nb = np.empty(n_cells * (2 * reach + 1) ** 3, np.int64)
+        nb = np.empty(27 * n_cells, np.int64)
         n_nb = 0
         for c in range(n_cells):
             nb_start[c] = n_nb
@@ -330,6 +330,10 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                         continue
                     q = _z_from(z_of, col_start[col], col_start[col + 1], cz - reach)
                     while q < col_start[col + 1] and z_of[q] <= cz + reach:
+                        if n_nb == len(nb):
+                            grown = np.empty(2 * len(nb), np.int64)
+                            grown[:n_nb] = nb
+                            nb = grown
                         nb[n_nb] = cell_of[q]
                         n_nb += 1
                         q = cell_start[cell_of[q] + 1]
