@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from meridian_torch.core.union_find import find_root
+
 __all__ = ["group_knn_distances", "group_dbscan_labels"]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
@@ -68,13 +70,8 @@ def _grid(points: np.ndarray, a: int, b: int, cell: float):
     key = (raw[:, 0] * shape[1] + raw[:, 1]) * shape[2] + raw[:, 2]
     order = np.argsort(key)
     cells = raw[order]
-    col_start = np.empty(n + 1, np.int64)
-    m = 0
-    for p in range(n):
-        if p == 0 or cells[p, 0] != cells[p - 1, 0] or cells[p, 1] != cells[p - 1, 1]:
-            col_start[m] = p
-            m += 1
-    col_start[m] = n
+    col_start = _run_starts(cells, 2)
+    m = len(col_start) - 1
     size = 1
     while size < 2 * m:
         size *= 2
@@ -88,7 +85,7 @@ def _grid(points: np.ndarray, a: int, b: int, cell: float):
             h = (h + 1) & (size - 1)
         table_key[h] = k
         table_col[h] = col
-    return lo, order, cells, shape, col_start[: m + 1], table_key, table_col
+    return lo, order, cells, shape, col_start, table_key, table_col
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -156,14 +153,17 @@ def _cell_size(points: np.ndarray, a: int, b: int, k1: int) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _cells(cells: np.ndarray) -> np.ndarray:
-    """(n_cells + 1,) first grid position of every cell (the grid is sorted by cell)."""
+def _run_starts(cells: np.ndarray, n_axes: int) -> np.ndarray:
+    """(runs + 1,) first grid position of every run of equal cells[:, :n_axes] (the grid is sorted
+    by cell): n_axes 2 gives the columns (x, y), 3 the cells."""
     n = len(cells)
     start = np.empty(n + 1, np.int64)
     count = 0
     for p in range(n):
-        if p == 0 or cells[p, 0] != cells[p - 1, 0] or cells[p, 1] != cells[p - 1, 1] \
-                or cells[p, 2] != cells[p - 1, 2]:
+        new = p == 0
+        for ax in range(n_axes):
+            new = new or cells[p, ax] != cells[p - 1, ax]
+        if new:
             start[count] = p
             count += 1
     start[count] = n
@@ -196,7 +196,7 @@ def group_knn_distances(points: np.ndarray, starts: np.ndarray, k: int) -> np.nd
         n_cols = len(col_start) - 1
         grid_points = points[a + order]  # grid order: a column's points are contiguous in memory
         z_of = cells[:, 2].copy()
-        cell_start = _cells(cells)
+        cell_start = _run_starts(cells, 3)
         tol = _TOL * (np.abs(grid_points).max() + cell)
         best = np.empty(k1)
         done = np.empty(np.diff(cell_start).max(), np.bool_)
@@ -279,14 +279,6 @@ def group_knn_distances(points: np.ndarray, starts: np.ndarray, k: int) -> np.nd
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _find(parent: np.ndarray, x: int) -> int:
-    while parent[x] != x:
-        parent[x] = parent[parent[x]]
-        x = parent[x]
-    return x
-
-
 @njit(cache=True, nogil=True)
 def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarray, eps: float,
                         min_points: float) -> np.ndarray:
@@ -310,7 +302,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         _, order, cells, shape, col_start, table_key, table_col = _grid(points, a, b, cell)
         grid_points, grid_weight, z_of = points[a + order], weight[a + order], cells[:, 2].copy()
         m = b - a
-        cell_start = _cells(cells)
+        cell_start = _run_starts(cells, 3)
         n_cells = len(cell_start) - 1
         cell_of = np.empty(m, np.int64)
         for c in range(n_cells):
@@ -366,7 +358,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                 continue
             for t in range(nb_start[c], nb_start[c + 1]):
                 d = nb[t]
-                if d <= c or not has_core[d] or _find(parent, c) == _find(parent, d):
+                if d <= c or not has_core[d] or find_root(parent, c) == find_root(parent, d):
                     continue
                 linked = False
                 for p in range(cell_start[c], cell_start[c + 1]):
@@ -379,12 +371,12 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                     if linked:
                         break
                 if linked:
-                    parent[_find(parent, d)] = _find(parent, c)
+                    parent[find_root(parent, d)] = find_root(parent, c)
         # labels by each cluster's first core row
         first_row = np.full(n_cells, m, np.int64)
         for p in range(m):
             if core[p]:
-                root = _find(parent, cell_of[p])
+                root = find_root(parent, cell_of[p])
                 first_row[root] = min(first_row[root], order[p])
         roots = np.flatnonzero(first_row < m)
         root_label = np.full(n_cells, -1, np.int64)
@@ -393,7 +385,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         next_label += len(roots)
         for p in range(m):
             if core[p]:
-                label[a + order[p]] = root_label[_find(parent, cell_of[p])]
+                label[a + order[p]] = root_label[find_root(parent, cell_of[p])]
         # border points: the nearest core point within eps, ties to the lowest row
         for p in range(m):
             if core[p]:

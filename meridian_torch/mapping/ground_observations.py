@@ -143,7 +143,7 @@ def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.nd
     # linear on the already sorted groups of the cleaning steps
     order = np.argsort(groups, kind="stable")
     sorted_groups = groups[order]
-    start = np.flatnonzero(np.r_[True, sorted_groups[1:] != sorted_groups[:-1]])
+    start = _group_starts(sorted_groups)[:-1]
     lo = np.full((int(groups.max()) + 1, points.shape[1]), np.inf)
     lo[sorted_groups[start]] = np.minimum.reduceat(points[order], start, axis=0)
     local = points - lo[groups]

@@ -15,6 +15,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.util import img_as_float64
 
+from meridian_torch.core.union_find import find_root
+
 __all__ = ["felzenszwalb"]
 
 
@@ -117,15 +119,6 @@ def _sort_costs(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
 
 
 @numba.njit(cache=True, nogil=True)
-def _find(parent: np.ndarray, node: int) -> int:
-    # Path halving: every visited node skips to its grandparent.
-    while parent[node] != node:
-        parent[node] = parent[parent[node]]
-        node = parent[node]
-    return node
-
-
-@numba.njit(cache=True, nogil=True)
 def _union(parent: np.ndarray, size: np.ndarray, ra: int, rb: int) -> int:
     """Hang the smaller of roots `ra`, `rb` under the larger; returns the surviving root."""
     if size[ra] < size[rb]:
@@ -177,7 +170,7 @@ def _segment_sorted_edges(
     for k in range(n_edges):
         a, b = _edge_pixels(order[k], height, width)
         pixel_a[k], pixel_b[k] = a, b
-        ra, rb = _find(parent, a), _find(parent, b)
+        ra, rb = find_root(parent, a), find_root(parent, b)
         if ra == rb:
             continue
         cost = sorted_costs[k]
@@ -189,11 +182,11 @@ def _segment_sorted_edges(
     # an edge between pixels of two components already at min_size never merges: skip its finds.
     small = np.empty(n, dtype=np.bool_)
     for p in range(n):
-        small[p] = size[_find(parent, p)] < min_size
+        small[p] = size[find_root(parent, p)] < min_size
     for k in range(n_edges):
         if not (small[pixel_a[k]] or small[pixel_b[k]]):
             continue
-        ra, rb = _find(parent, pixel_a[k]), _find(parent, pixel_b[k])
+        ra, rb = find_root(parent, pixel_a[k]), find_root(parent, pixel_b[k])
         if ra != rb and (size[ra] < min_size or size[rb] < min_size):
             _union(parent, size, ra, rb)
     # Number components by their first pixel, as np.unique over skimage's min-index roots does.
@@ -201,7 +194,7 @@ def _segment_sorted_edges(
     label_of_root = np.full(n, -1, dtype=np.int64)
     count = 0
     for p in range(n):
-        r = _find(parent, p)
+        r = find_root(parent, p)
         if label_of_root[r] < 0:
             label_of_root[r] = count
             count += 1
