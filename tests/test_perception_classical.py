@@ -105,16 +105,17 @@ def test_batch_equals_single_images(segmenter: ClassicalSegmenter) -> None:
 
 def test_masked_mean_equals_loop() -> None:
     gen = torch.Generator().manual_seed(0)
-    feats = torch.rand(2, 5, 12, 16, generator=gen, dtype=torch.float64)
-    masks = torch.rand(2, 4, 12, 16, generator=gen) > 0.6
-    masks[1, 3] = False  # an empty mask pools to zeros
-    mean, area = masked_mean(feats, masks)
-    for b in range(2):
+    feats = torch.rand(5, 12, 16, generator=gen, dtype=torch.float64)
+    masks = torch.rand(4, 12, 16, generator=gen) > 0.6
+    masks[3] = False  # an empty mask pools to zeros
+    buffer = torch.full((4, 12, 16), float("nan"), dtype=torch.float64)  # stale contents must not leak
+    for mask_buffer in (None, buffer):
+        mean, area = masked_mean(feats, masks, mask_buffer)
         for m in range(4):
-            sel = feats[b][:, masks[b, m]]
+            sel = feats[:, masks[m]]
             expected = sel.mean(dim=1) if sel.shape[1] else torch.zeros(5, dtype=torch.float64)
-            torch.testing.assert_close(mean[b, m], expected)
-            assert area[b, m] == masks[b, m].sum()
+            torch.testing.assert_close(mean[m], expected)
+            assert area[m] == masks[m].sum()
 
 
 def test_descriptors_unit_norm_and_colour_similarity(segmenter: ClassicalSegmenter) -> None:
@@ -149,6 +150,26 @@ def test_global_descriptor_and_factories() -> None:
         SegmenterConfig.model_validate({"backend": "classical", "unknown": 1})
     with pytest.raises(ValueError):
         seg.segment(torch.rand(1, 4, 8, 8), 0.3)
+
+
+def test_global_descriptor_batch_equals_single_images_and_a_batched_reference() -> None:
+    glob = build_global_describer(GlobalDescriptorConfig(pyramid_levels=3))
+    imgs = torch.stack([scene(0.4, seed=s)[0] for s in range(3)]).float()
+    imgs[1] = imgs[1].flip(-1)
+    batch = glob.describe(imgs)
+    for i in range(3):  # one image at a time inside, so a batch changes no bit
+        assert torch.equal(batch[i], glob.describe(imgs[i : i + 1])[0])
+    # the definition, on the whole batch: GeM pooling over a 1 + 4 + 16 cell pyramid
+    feats = glob.features(imgs).clamp(min=1e-6) ** glob.gem_p
+    cells = torch.cat([
+        (torch.nn.functional.adaptive_avg_pool2d(feats, 2**level) ** (1 / glob.gem_p)).flatten(2).transpose(1, 2)
+        for level in range(3)
+    ], dim=1)
+    colour, texture = cells[..., : glob.features.colour_channels], cells[..., glob.features.colour_channels :]
+    blocks = [torch.nn.functional.normalize(x - x.mean(dim=-1, keepdim=True), dim=-1) for x in (colour, texture)]
+    joined = torch.cat([glob.colour_weight * blocks[0], glob.texture_weight * blocks[1]], dim=-1)
+    expected = torch.nn.functional.normalize(torch.nn.functional.normalize(joined, dim=-1).flatten(1), dim=-1)
+    torch.testing.assert_close(batch, expected, atol=1e-6, rtol=1e-6)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -11,14 +11,19 @@ from meridian_torch.perception.classical.pixel_features import PixelFeatures, ch
 __all__ = ["ColourTextureDescriber", "ColourTextureGlobalDescriber", "masked_mean"]
 
 
-def masked_mean(features: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Average (B, C, H, W) features over (B, M, H, W) masks with one einsum.
+def masked_mean(
+    features: torch.Tensor, masks: torch.Tensor, mask_buffer: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average one image's (C, H, W) features over its (M, H, W) masks with one einsum.
 
-    Returns (B, M, C) means (zeros for empty masks) and (B, M) pixel counts.
+    `mask_buffer`, an (M, H, W) tensor of the features' dtype, takes the float copy of the masks
+    (a caller describing many images reuses it). Returns (M, C) means (zeros for empty masks)
+    and (M,) pixel counts.
     """
-    w = masks.to(features.dtype)
-    area = w.sum(dim=(2, 3))
-    summed = torch.einsum("bchw,bmhw->bmc", features, w)
+    w = features.new_empty(masks.shape) if mask_buffer is None else mask_buffer
+    w.copy_(masks)
+    area = w.sum(dim=(1, 2))
+    summed = torch.einsum("chw,mhw->mc", features, w)
     return summed / area.clamp(min=1)[..., None], area
 
 
@@ -59,7 +64,15 @@ class ColourTextureDescriber:
                 f"masks (B, M, H, W) and valid (B, M) must match images {tuple(images.shape)}, "
                 f"got {tuple(masks.shape)} and {tuple(valid.shape)}"
             )
-        hist, area = masked_mean(self.features(images), masks)
+        # One image at a time: a batch's feature maps and float masks (about 320 MB for 8 frames
+        # of 480 x 270 with 20 masks) would be fresh allocations that the allocator maps and
+        # unmaps on every batch, and their page faults cost as much as the arithmetic; one
+        # image's fit in reused heap memory. The numbers are bitwise those of the whole batch.
+        hist = images.new_empty((b, masks.shape[1], self.dim))
+        area = images.new_empty(masks.shape[:2])
+        mask_buffer = images.new_empty(masks.shape[1:])
+        for i in range(b):
+            hist[i], area[i] = masked_mean(self.features(images[i : i + 1])[0], masks[i], mask_buffer)
         desc = _histogram_descriptor(hist, self.features.colour_channels, self.colour_weight, self.texture_weight)
         keep = valid & (area > 0)
         return torch.where(keep[..., None], desc, torch.zeros_like(desc))
@@ -93,11 +106,15 @@ class ColourTextureGlobalDescriber:
     @torch.no_grad()
     def describe(self, images: torch.Tensor) -> torch.Tensor:
         """Images (B, 3, H, W) -> (B, dim)."""
-        feats = self.features(images).clamp(min=1e-6) ** self.gem_p
-        cells = []
-        for level in range(self.pyramid_levels):
-            pooled = F.adaptive_avg_pool2d(feats, 2**level) ** (1.0 / self.gem_p)  # (B, C, g, g)
-            cells.append(pooled.flatten(2).transpose(1, 2))  # (B, g*g, C)
-        cell = torch.cat(cells, dim=1)
+        check_images(images)
+        cell = images.new_empty((images.shape[0], sum(4**level for level in range(self.pyramid_levels)),
+                                 self.features.channels))
+        for i in range(images.shape[0]):  # one image at a time, as the segment describer (page faults)
+            feats = self.features(images[i : i + 1]).clamp_(min=1e-6).pow_(self.gem_p)
+            start = 0
+            for level in range(self.pyramid_levels):
+                pooled = F.adaptive_avg_pool2d(feats, 2**level) ** (1.0 / self.gem_p)  # (1, C, g, g)
+                cell[i, start : start + 4**level] = pooled[0].flatten(1).T  # (g*g, C)
+                start += 4**level
         desc = _histogram_descriptor(cell, self.features.colour_channels, self.colour_weight, self.texture_weight)
         return F.normalize(desc.flatten(1), dim=-1)
