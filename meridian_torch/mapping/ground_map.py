@@ -275,24 +275,38 @@ class GroundMapper:
 
 
 def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Iterator[PerceivedFrames]:
-    """The first `n_frames` frames of `reader` in batches of `ground_map.batch_size`, read and
-    perceived one batch ahead in a second thread while the caller integrates the current one (the
-    tracker and submaps are serial; this keeps the other core busy meanwhile). The batches and
-    their contents are those of the plain loop; the thread records its stages into the caller's
-    stage table."""
+    """The first `n_frames` frames of `reader` in batches of `ground_map.batch_size`, in a
+    three-stage pipeline: a reader thread decodes batch k + 2 while a perception thread perceives
+    batch k + 1 and the caller integrates batch k (the tracker and submaps are serial; the
+    threads keep the other core busy meanwhile, and image decoding off the perception thread's
+    critical path). The batches and their contents are those of the plain loop; both threads
+    record their stages into the caller's stage table."""
     starts = list(range(0, n_frames, mapper.cfg.batch_size))
 
-    def perceive(start: int) -> PerceivedFrames:
+    def read(start: int) -> list[Frame]:
         with stage("read frames"):
-            frames = [reader[i] for i in range(start, min(start + mapper.cfg.batch_size, n_frames))]
-        return mapper.perceive(frames)
+            return [reader[i] for i in range(start, min(start + mapper.cfg.batch_size, n_frames))]
 
-    with ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as pool:
-        ahead = pool.submit(contextvars.copy_context().run, perceive, starts[0]) if starts else None
+    with ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
+            ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as perceive_pool:
+        reads = {}
+
+        def read_ahead(k: int) -> None:
+            if k < len(starts):
+                reads[k] = read_pool.submit(contextvars.copy_context().run, read, starts[k])
+
+        def perceive(k: int) -> PerceivedFrames:
+            read_ahead(k + 1)  # decoded while this batch is perceived
+            return mapper.perceive(reads.pop(k).result())
+
+        if not starts:
+            return
+        read_ahead(0)
+        ahead = perceive_pool.submit(contextvars.copy_context().run, perceive, 0)
         for k in range(len(starts)):
             batch = ahead.result()
             if k + 1 < len(starts):
-                ahead = pool.submit(contextvars.copy_context().run, perceive, starts[k + 1])
+                ahead = perceive_pool.submit(contextvars.copy_context().run, perceive, k + 1)
             yield batch
 
 
