@@ -14,7 +14,7 @@ States, per new ground submap:
   pool; CLIPPER + pose graph; accepted inliers are committed (the other candidates of their
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
 - The fix is checked by the submaps that follow it: once `fix_min_inliers` submaps have come
-  since the fix, fewer than `fix_min_inlier_fraction` of them with an accepted loop closure
+  since the fix, fewer than `fix_revoke_below_fraction` of them with an accepted loop closure
   **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
   one, most). The online estimate is withheld from then on (NaN) and the localizer goes back to
   "pre": the pool is rebuilt from the submaps' place-recognition candidates and the next fix
@@ -338,15 +338,15 @@ class Localizer:
         return fresh
 
     def _fix_refuted(self, sel: InlierSelection) -> bool:
-        """The submaps since the fix, once `fix_min_inliers` of them have come, fail its gate
-        fraction: too few of them have an accepted loop closure."""
+        """The submaps since the fix, once `fix_min_inliers` of them have come: fewer than
+        `fix_revoke_below_fraction` of them have an accepted loop closure."""
         b = self.cfg.backend
         since = len(self.submaps) - 1 - self._fix_position
         if since < b.fix_min_inliers:
             return False
         accepted = self._accepted(sel).submap_index
         agreeing = int(torch.unique(accepted[accepted > self.fix_submap_index]).numel())
-        return agreeing < b.fix_min_inlier_fraction * since
+        return agreeing < b.fix_revoke_below_fraction * since
 
     def _revoke(self, n_nodes: int, available_time: float) -> None:
         """Back to the global search: withhold the online estimate from `available_time` on and
