@@ -64,10 +64,11 @@ class ColourTextureDescriber:
                 f"masks (B, M, H, W) and valid (B, M) must match images {tuple(images.shape)}, "
                 f"got {tuple(masks.shape)} and {tuple(valid.shape)}"
             )
-        # One image at a time: a batch's feature maps and float masks (about 320 MB for 8 frames
-        # of 480 x 270 with 20 masks) would be fresh allocations that the allocator maps and
-        # unmaps on every batch, and their page faults cost as much as the arithmetic; one
-        # image's fit in reused heap memory. The numbers are bitwise those of the whole batch.
+        # One image at a time: a batch's float masks, feature maps and their temporaries (about
+        # 200 MB for 8 frames of 480 x 270 with 20 masks) would be fresh allocations that the
+        # allocator maps and unmaps on every batch, and their page faults cost as much as the
+        # arithmetic; one image's fit in reused heap memory. At one torch thread the numbers are
+        # bitwise those of the whole batch.
         hist = images.new_empty((b, masks.shape[1], self.dim))
         area = images.new_empty(masks.shape[:2])
         mask_buffer = images.new_empty(masks.shape[1:])
