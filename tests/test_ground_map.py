@@ -203,8 +203,9 @@ def test_ground_mapping_stages_are_timed_when_recorded(tiny: Path) -> None:
 
 
 def test_perceiving_a_batch_ahead_gives_the_plain_loops_submaps(tiny: Path, submaps) -> None:
-    """map_ground perceives the next batch in a second thread (`perceived_batches`); the submaps
-    are bitwise those of a plain add_frames loop over the same batches."""
+    """map_ground decodes two batches ahead in a reader thread and perceives one ahead in another
+    (`perceived_batches`); the submaps are bitwise those of a plain add_frames loop over the same
+    batches."""
     reader = SequenceReader(tiny)
     mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
     plain = []
@@ -217,6 +218,22 @@ def test_perceiving_a_batch_ahead_gives_the_plain_loops_submaps(tiny: Path, subm
         for name in a.primitives.__dataclass_fields__:
             assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
         assert torch.equal(a.frame_descriptors, b.frame_descriptors)
+
+
+def test_a_frame_that_cannot_be_decoded_stops_the_pipeline_with_its_file(tiny: Path, tmp_path: Path) -> None:
+    """The reader thread's error reaches the caller (not a hang, not a skipped frame) and names the file."""
+    import shutil
+
+    from meridian_torch.errors import SequenceFormatError
+
+    seq = tmp_path / "seq"
+    shutil.copytree(tiny, seq)
+    index = CFG.ground_map.batch_size + 1  # in the second batch, decoded while the first is perceived
+    row = (seq / "ground" / "frames.csv").read_text().splitlines()[1 + index]  # timestamp,rgb,depth
+    rgb_path = seq / "ground" / row.split(",")[1]
+    rgb_path.write_bytes(b"not a png")
+    with pytest.raises(SequenceFormatError, match=rgb_path.name):
+        map_ground(SequenceReader(seq), CFG, resolve_runtime(CFG.runtime))
 
 
 def test_fast_tracking_gives_the_plain_trackers_submaps(tiny: Path, submaps) -> None:
