@@ -12,6 +12,7 @@ from meridian_torch.perception.classical.felzenszwalb import (
     _NO_TIES,
     _OTHER_TIES,
     _ZERO_TIES,
+    _edge_costs,
     _sort_costs,
     felzenszwalb,
 )
@@ -81,6 +82,25 @@ def test_zero_cost_ties_take_the_radix_order_only_when_it_cannot_matter(seed, sc
     assert _sort_costs(costs)[2] == _ZERO_TIES
     for min_size in (2, 3):
         _assert_same_labels(row, scale, 0.0, min_size)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    height=st.integers(1, 25),
+    width=st.integers(1, 25),
+    channels=st.integers(1, 4),
+    seed=st.integers(0, 2**32 - 1),
+    magnitude=st.sampled_from([1e-6, 1.0, 1e3]),
+)
+def test_edge_costs_are_skimages_expression_bitwise(height, width, channels, seed, magnitude):
+    image = np.random.default_rng(seed).random((height, width, channels)) * magnitude
+    right = image[:, 1:] - image[:, :-1]
+    down = image[1:] - image[:-1]
+    down_right = image[1:, 1:] - image[:-1, :-1]
+    up_right = image[1:, :-1] - image[:-1, 1:]
+    expected = np.concatenate([np.sqrt(np.sum(d * d, axis=-1)).ravel() for d in (right, down, down_right, up_right)])
+    costs = _edge_costs(image)
+    assert costs.shape == expected.shape and np.array_equal(costs.view(np.uint64), expected.view(np.uint64))
 
 
 def test_sort_costs_is_argsort_when_costs_are_distinct():
