@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import contextvars
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -289,7 +289,7 @@ def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Itera
 
     with ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
             ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as perceive_pool:
-        reads = {}
+        reads: dict[int, Future[list[Frame]]] = {}  # batch -> its frames being decoded
 
         def read_ahead(k: int) -> None:
             if k < len(starts):

@@ -3,10 +3,10 @@
 `skimage.segmentation.felzenszwalb` spends most of its time outside the algorithm: np.argsort
 of the edge costs, (E, 2) int64 edge arrays built with np.c_/vstack and reordered by cost, and
 the union-find forest unravelled with repeated fancy indexing and np.unique. Here the smoothing
-and the edge costs stay skimage's NumPy/SciPy expressions (the same bits), the costs are sorted
-by a radix sort whose order is provably np.argsort's (else np.argsort itself runs), and one
-compiled kernel derives each sorted edge's pixels from its index, runs both union-find passes
-and numbers the components."""
+stays skimage's SciPy call, the edge costs are computed in one compiled pass with NumPy's
+rounding steps (the same bits), the costs are sorted by a radix sort whose order is provably
+np.argsort's (else np.argsort itself runs), and one compiled kernel derives each sorted edge's
+pixels from its index, runs both union-find passes and numbers the components."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def _edge_costs(image: np.ndarray) -> np.ndarray:
     costs = np.empty(n_right + n_down + 2 * n_diag)
     k = 0
     for direction in range(4):
-        # (row step, column step) from the edge's first pixel (a) to its second (b): d = b - a
+        # each edge's pixels a and b as skimage's slices pair them, d = image[b] - image[a]
         rows = height if direction == 0 else height - 1
         cols = width if direction == 1 else width - 1
         for r in range(rows):
