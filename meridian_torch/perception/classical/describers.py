@@ -108,14 +108,16 @@ class ColourTextureGlobalDescriber:
     def describe(self, images: torch.Tensor) -> torch.Tensor:
         """Images (B, 3, H, W) -> (B, dim)."""
         check_images(images)
-        cell = images.new_empty((images.shape[0], sum(4**level for level in range(self.pyramid_levels)),
-                                 self.features.channels))
-        for i in range(images.shape[0]):  # one image at a time, as the segment describer (page faults)
-            feats = self.features(images[i : i + 1]).clamp_(min=1e-6).pow_(self.gem_p)
-            start = 0
-            for level in range(self.pyramid_levels):
-                pooled = F.adaptive_avg_pool2d(feats, 2**level) ** (1.0 / self.gem_p)  # (1, C, g, g)
-                cell[i, start : start + 4**level] = pooled[0].flatten(1).T  # (g*g, C)
-                start += 4**level
+        # one image at a time, as the segment describer (page faults)
+        cell = torch.cat([self._pyramid_cells(images[i : i + 1]) for i in range(images.shape[0])])
         desc = _histogram_descriptor(cell, self.features.colour_channels, self.colour_weight, self.texture_weight)
         return F.normalize(desc.flatten(1), dim=-1)
+
+    def _pyramid_cells(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) -> (B, cells, C) GeM-pooled features of every pyramid cell, level by level."""
+        feats = self.features(images).clamp(min=1e-6) ** self.gem_p
+        cells = []
+        for level in range(self.pyramid_levels):
+            pooled = F.adaptive_avg_pool2d(feats, 2**level) ** (1.0 / self.gem_p)  # (B, C, g, g)
+            cells.append(pooled.flatten(2).transpose(1, 2))  # (B, g*g, C)
+        return torch.cat(cells, dim=1)

@@ -63,24 +63,19 @@ def _edge_costs(image: np.ndarray) -> np.ndarray:
     height, width, channels = image.shape
     n_right, n_down, n_diag = height * (width - 1), (height - 1) * width, (height - 1) * (width - 1)
     costs = np.empty(n_right + n_down + 2 * n_diag)
+    # per direction, (row, column) of an edge's pixels a and b relative to its row r and column c,
+    # as skimage's slices pair them (up-right: image[1:, :-1] - image[:-1, 1:]); d = image[b] - image[a]
+    offsets = np.array([[0, 0, 0, 1], [0, 0, 1, 0], [0, 0, 1, 1], [0, 1, 1, 0]])
     k = 0
     for direction in range(4):
-        # each edge's pixels a and b as skimage's slices pair them, d = image[b] - image[a]
+        ra, ca, rb, cb = offsets[direction]
         rows = height if direction == 0 else height - 1
         cols = width if direction == 1 else width - 1
         for r in range(rows):
             for c in range(cols):
-                if direction == 0:
-                    ra, ca, rb, cb = r, c, r, c + 1
-                elif direction == 1:
-                    ra, ca, rb, cb = r, c, r + 1, c
-                elif direction == 2:
-                    ra, ca, rb, cb = r, c, r + 1, c + 1
-                else:  # skimage: image[1:, :-1] - image[:-1, 1:]
-                    ra, ca, rb, cb = r, c + 1, r + 1, c
                 total = 0.0
                 for ch in range(channels):
-                    d = image[rb, cb, ch] - image[ra, ca, ch]
+                    d = image[r + rb, c + cb, ch] - image[r + ra, c + ca, ch]
                     total += d * d
                 costs[k] = np.sqrt(total)
                 k += 1
