@@ -186,15 +186,26 @@ def test_concatenated_problems_sample_as_each_alone(max_associations: int | None
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_noise_added_per_patch_equals_the_gathered_slabs(dtype: torch.dtype) -> None:
-    from meridian_torch.matching.particle_noise import add_noise_, noise_slabs, row_words, slab_table
+@pytest.mark.parametrize("options", [
+    {"early_stop": False}, {"early_stop": False, "rmsprop": False}, {"early_stop": False, "anneal": False},
+    {"noise": False, "n_iterations": 200},  # noise-free ascent settles: the early stop is exercised
+])
+def test_compiled_dynamics_follow_the_torch_loop(dtype: torch.dtype, options: dict) -> None:
+    # CPU tensors run the compiled Langevin loop, other devices torch's: the same dynamics and
+    # noise, rounded in another order, so the particles agree to rounding, steps included.
+    from meridian_torch.matching.particles import _penalised, _run_dynamics
 
-    n_patches, m, n = 7, 13, 17
-    slabs = slab_table(m * n, dtype, torch.device("cpu"))
-    words = row_words(patch_seeds(n_patches, torch.Generator().manual_seed(3)), 5, n)
-    scale = torch.randn(n_patches, 1, n, dtype=dtype)
-    g = torch.randn(n_patches, m, n, dtype=dtype)
-    expected = g.clone().addcmul_(noise_slabs(slabs, words, m), scale)
-    assert torch.equal(add_noise_(g.clone(), slabs, words, scale), expected)
-    # each patch reads its own slab: the words of other patches give other noise
-    assert not torch.equal(add_noise_(g.clone(), slabs, words.roll(1, 0), scale), expected)
+    cfg = ParticleConfig(**{"n_particles": 40, "n_iterations": 60, **options})
+    M, valid, pairs = batch([planted_problem(30, 50, 7), planted_problem(31, 35, 6), planted_problem(32, 8, 4)])
+    M = M.to(dtype)
+    d = valid.to(dtype).sum(-1)
+    A = _penalised(M, d)
+    seeds = patch_seeds(3, torch.Generator().manual_seed(7))
+    x_compiled, steps_compiled = _run_dynamics(A, d, valid, cfg, seeds, compiled=True)
+    x_torch, steps_torch = _run_dynamics(A, d, valid, cfg, seeds, compiled=False)
+    assert torch.equal(steps_compiled, steps_torch)
+    if cfg.early_stop:
+        assert int(steps_torch.max()) < cfg.n_iterations
+    assert x_torch.abs().amax() > 0.1 and not x_torch[~valid].any() and not x_compiled[~valid].any()
+    tolerance = 1e-4 if dtype == torch.float32 else 1e-10
+    torch.testing.assert_close(x_compiled, x_torch, rtol=0.0, atol=tolerance)

@@ -9,7 +9,9 @@ import functools
 import torch
 from torch import Tensor
 
-__all__ = ["ROW", "add_noise_", "mix", "noise_slabs", "patch_seeds", "row_words", "slab_table", "uniform"]
+__all__ = [
+    "ROW", "add_noise_", "circular_table", "mix", "patch_seeds", "row_words", "slab_table", "step_noise", "uniform",
+]
 
 # splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
 _MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
@@ -41,8 +43,14 @@ def wrap64(value: int) -> int:
 
 def row_words(seeds: Tensor, step: int, n_particles: int) -> Tensor:
     """(P,) seeds -> (P, N) int64 random words of iteration `step` (one per particle)."""
-    base = mix(seeds + wrap64((step + 2) * _GOLDEN))
-    return mix(base[:, None] + torch.arange(n_particles, device=seeds.device) * ROW)
+    return step_words(seeds, [step], n_particles)[0]
+
+
+def step_words(seeds: Tensor, steps: list[int], n_particles: int) -> Tensor:
+    """(P,) seeds -> (S, P, N) int64 random words of the iterations `steps` (one per particle)."""
+    step_keys = torch.tensor([wrap64((step + 2) * _GOLDEN) for step in steps], dtype=torch.int64, device=seeds.device)
+    base = mix(seeds[None, :] + step_keys[:, None])
+    return mix(base[..., None] + torch.arange(n_particles, device=seeds.device) * ROW)
 
 
 def uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
@@ -60,35 +68,38 @@ def noise_table(dtype: torch.dtype, device: torch.device) -> Tensor:
     return torch.cat([table, table[:-1]])
 
 
-def slab_table(width: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """(_TABLE_SIZE, width) view of the circular noise table: row r = entries r .. r + width - 1."""
+def circular_table(width: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """1-D noise table from which the slab at any offset r < _TABLE_SIZE is entries r .. r + width - 1."""
     table = noise_table(dtype, device)
     if width > _TABLE_SIZE:
         table = table[:_TABLE_SIZE].repeat(2 + width // _TABLE_SIZE)
-    return table[: _TABLE_SIZE + width - 1].unfold(0, width, 1)
+    return table[: _TABLE_SIZE + width - 1]
 
 
-def noise_slabs(slabs: Tensor, words: Tensor, m: int) -> Tensor:
-    """(P, N) words of one step -> (P, m, N) standard normals: patch p reads m x N consecutive
-    table entries (coordinate i, particle n at i N + n, so a coordinate sees the same numbers
-    whatever the padded width m) from an offset taken from its first particle's word. Hashing
-    every entry would cost as much as the drift."""
-    offset = srl(words[:, 0], 1) % _TABLE_SIZE
-    return slabs.index_select(0, offset).view(len(offset), m, words.shape[1])
+def slab_table(width: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(_TABLE_SIZE, width) view of the circular noise table: row r = entries r .. r + width - 1."""
+    return circular_table(width, dtype, device).unfold(0, width, 1)
 
 
-def add_noise_(g: Tensor, slabs: Tensor, words: Tensor, scale: Tensor) -> Tensor:
-    """g (P, m, N) += noise_slabs(slabs, words, m) * scale (P, 1, N), in place; returns g.
+def step_noise(seeds: Tensor, sigmas: list[float], n_particles: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The noise of every step t (sigma_t = sigmas[t]) for patches with seeds (P,): the offset of
+    each patch's slab in the table (T, P) int64, from its first particle's word, and the scale of
+    each particle (T, P, N), sigma_t with a random sign per particle, so that two patches whose
+    slabs overlap in the table still differ.
 
-    On the CPU each patch adds its slab straight from the table: gathering the slabs first copies
-    the whole (P, m, N) batch through a strided view, which took about a quarter of a match.
-    Other devices gather in one call (a loop over patches would launch P kernels per step)."""
-    if g.device.type != "cpu":
-        return g.addcmul_(noise_slabs(slabs, words, g.shape[1]), scale)
-    _, m, n = g.shape
-    for p, offset in enumerate((srl(words[:, 0], 1) % _TABLE_SIZE).tolist()):
-        g[p].addcmul_(slabs[offset].view(m, n), scale[p])
-    return g
+    Patch p's noise of step t, coordinate i, particle n is slab[offsets[t, p]][i N + n] x
+    scale[t, p, n]: a coordinate sees the same numbers whatever the padded width m. Hashing every
+    entry would cost as much as the drift."""
+    words = step_words(seeds, list(range(len(sigmas))), n_particles)
+    offsets = srl(words[..., 0], 1) % _TABLE_SIZE
+    sign = 1.0 - 2.0 * (words & 1).to(dtype)
+    return offsets, torch.tensor(sigmas, dtype=dtype, device=seeds.device)[:, None, None] * sign
+
+
+def add_noise_(g: Tensor, slabs: Tensor, offsets: Tensor, scale: Tensor) -> Tensor:
+    """g (P, m, N) += the slabs at `offsets` (P,) of `slab_table` x scale (P, N), in place."""
+    n_patches, m, n = g.shape
+    return g.addcmul_(slabs.index_select(0, offsets).view(n_patches, m, n), scale[:, None, :])
 
 
 def patch_seeds(n_patches: int, generator: torch.Generator) -> Tensor:

@@ -56,14 +56,18 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import ParticleConfig
+from meridian_torch.core.parallel import thread_map
 from meridian_torch.matching.affinity import AffinityEntries
+from meridian_torch.matching.langevin_kernel import langevin_patches
 from meridian_torch.matching.particle_noise import (
     ROW,
     add_noise_,
+    circular_table,
     mix,
     patch_seeds,
     row_words,
     slab_table,
+    step_noise,
     uniform,
 )
 from meridian_torch.matching.particle_problem import SamplerProblem, sampler_problem
@@ -158,28 +162,71 @@ def _drift(A: _BlockOperator, d: Tensor, validf: Tensor, x: Tensor) -> Tensor:
     return A(x).addcmul_(validf[:, :, None], d[:, None, None] * x.sum(1, keepdim=True), value=-1.0)
 
 
-@torch.no_grad()
-def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor) -> tuple[Tensor, Tensor]:
-    """Langevin loop for all patches (A is consumed); returns final x (P, m, N) and iterations (P,).
+def _noise_schedule(cfg: ParticleConfig) -> list[float]:
+    """sigma_t of every step: sqrt(eta), decaying linearly to 0 with `anneal`."""
+    sqrt_eta, T = cfg.step_size**0.5, cfg.n_iterations
+    return [sqrt_eta * (1.0 - t / (T - 1)) if cfg.anneal else sqrt_eta for t in range(T)]
 
-    Every step works in place on (P, m, N) buffers: allocating them cost more than the arithmetic."""
+
+@torch.no_grad()
+def _run_dynamics(
+    A: Tensor, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor, compiled: bool | None = None
+) -> tuple[Tensor, Tensor]:
+    """Langevin loop for all patches on the penalised affinity A (sparse COO, coalesced); returns
+    final x (P, m, N) and iterations (P,). `compiled` (default: on CPU tensors) runs the compiled
+    loop, else torch's (other devices)."""
     n_patches, m = valid.shape
-    n_particles, T = cfg.n_particles, cfg.n_iterations
+    n_particles = cfg.n_particles
     dtype, device = d.dtype, d.device
     validf = valid.to(dtype)
-    slabs = slab_table(m * n_particles, dtype, device) if cfg.noise else None
     coord_keys = mix(torch.arange(m, device=device, dtype=torch.int64) + ROW)
-
     init_words = mix(row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
-    x_out = uniform(init_words, dtype) * validf[:, :, None]
+    x = uniform(init_words, dtype) * validf[:, :, None]
+    offsets, scale = step_noise(seeds, _noise_schedule(cfg), n_particles, dtype)
+    if device.type == "cpu" if compiled is None else compiled:
+        return _compiled_dynamics(A, d, validf, x, offsets, scale, cfg)
+    return _torch_dynamics(_BlockOperator(A), d, validf, x, offsets, scale, cfg)
+
+
+def _compiled_dynamics(
+    A: Tensor, d: Tensor, validf: Tensor, x: Tensor, offsets: Tensor, scale: Tensor, cfg: ParticleConfig
+) -> tuple[Tensor, Tensor]:
+    """`langevin_patches` on CPU tensors, the patches dealt round-robin to torch's CPU threads
+    (each patch's steps are independent of the others')."""
+    n_patches, m = validf.shape
+    batch, row, col = A.indices()
+    crow = torch.zeros(n_patches * m + 1, dtype=torch.int64)
+    crow[1:] = torch.cumsum(torch.bincount(batch * m + row, minlength=n_patches * m), 0)
+    iterations = torch.empty(n_patches, dtype=torch.int64)
+    table = circular_table(m * cfg.n_particles, x.dtype, x.device)
+    constants = torch.tensor([cfg.step_size, cfg.alpha, 1.0 - cfg.alpha, 1e-6, 0.0], dtype=x.dtype)
+    arrays = [t.numpy() for t in (crow, col, A.values(), d, validf, x, iterations, table, offsets, scale, constants)]
+
+    def run(patches: Tensor) -> None:
+        langevin_patches(patches.numpy(), *arrays, cfg.noise, cfg.rmsprop, cfg.early_stop, cfg.check_interval,
+                         cfg.obj_tol, cfg.patience)
+
+    threads = max(1, min(torch.get_num_threads(), n_patches))
+    thread_map(run, [torch.arange(k, n_patches, threads) for k in range(threads)])
+    return x, iterations
+
+
+def _torch_dynamics(
+    A: _BlockOperator, d: Tensor, validf: Tensor, x: Tensor, offsets: Tensor, scale: Tensor, cfg: ParticleConfig
+) -> tuple[Tensor, Tensor]:
+    """The Langevin loop as torch ops on the whole (P, m, N) batch (A is consumed): every step in
+    place (allocating the buffers cost more than the arithmetic)."""
+    n_patches, m = validf.shape
+    T, dtype, device = cfg.n_iterations, x.dtype, x.device
+    slabs = slab_table(m * cfg.n_particles, dtype, device) if cfg.noise else None
+    x_out = x
     iterations = torch.full((n_patches,), T, dtype=torch.int64, device=device)
     # Working batch: the patches still running (indices into the full batch).
     active = torch.arange(n_patches, device=device)
-    d_act, v_act, x, seeds_act = d, validf[:, :, None], x_out.clone(), seeds
+    d_act, v_act, x = d, validf[:, :, None], x_out.clone()
     h = torch.zeros_like(x)
     ema = torch.zeros(n_patches, dtype=dtype, device=device)
     settled = torch.zeros(n_patches, dtype=torch.int64, device=device)
-    sqrt_eta = cfg.step_size**0.5
 
     for t in range(T):
         g = _drift(A, d_act, v_act[..., 0], x)
@@ -204,13 +251,9 @@ def _run_dynamics(A: _BlockOperator, d: Tensor, valid: Tensor, cfg: ParticleConf
                 if active.numel() == 0:
                     break
                 A.keep(keep)
-                d_act, v_act, seeds_act = d_act[keep], v_act[keep], seeds_act[keep]
+                d_act, v_act = d_act[keep], v_act[keep]
         if slabs is not None:
-            sigma = sqrt_eta * (1.0 - t / (T - 1)) if cfg.anneal else sqrt_eta
-            words = row_words(seeds_act, t, n_particles)
-            # A random sign per particle: two patches' slabs that overlap in the table still differ.
-            signed_sigma = (sigma * (1.0 - 2.0 * (words & 1).to(dtype)))[:, None, :]
-            add_noise_(g, slabs, words, signed_sigma)
+            add_noise_(g, slabs, offsets[t, active], scale[t, active])
         if cfg.rmsprop:
             if t == 0:
                 h = g.square()
@@ -329,7 +372,7 @@ def _sample(M: Tensor, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds:
     dtype = M.dtype
     d = valid.to(dtype).sum(-1)
     penalised = _penalised(M, d)
-    x, iterations = _run_dynamics(_BlockOperator(penalised), d, valid, cfg, seeds)
+    x, iterations = _run_dynamics(penalised, d, valid, cfg, seeds)
 
     masks = _round(_BlockOperator(penalised), d, valid, x, cfg.rounding)
     size = masks.sum(-1)
