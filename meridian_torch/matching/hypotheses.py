@@ -114,11 +114,13 @@ def register_sets(
         w = w.reshape(B, -1)
         n = w.shape[1]
         used = w > 0
-        width = max(int(used.sum(1).max()) if n else 0, 1)
-        if n == 0:
-            return w.new_zeros(B, width), torch.zeros(B, width, dtype=torch.int64, device=w.device)
-        index = torch.sort(used.to(torch.int8), dim=1, descending=True, stable=True).indices[:, :width]
-        index = torch.where(used.gather(1, index), index, n)
+        count = used.sum(1)
+        width = max(int(count.max()) if n and B else 0, 1)
+        # Each set's members in ascending order: the nonzeros are listed row by row.
+        row, column = used.nonzero(as_tuple=True)
+        slot = torch.arange(len(row), device=w.device) - (torch.cumsum(count, 0) - count)[row]
+        index = torch.full((B, width), n, dtype=torch.int64, device=w.device)
+        index[row, slot] = column
         return torch.cat([w, w.new_zeros(B, 1)], 1).gather(1, index), index
 
     def take(geometry: Tensor, index: Tensor) -> Tensor:
