@@ -209,3 +209,22 @@ def test_compiled_dynamics_follow_the_torch_loop(dtype: torch.dtype, options: di
     assert x_torch.abs().amax() > 0.1 and not x_torch[~valid].any() and not x_compiled[~valid].any()
     tolerance = 1e-4 if dtype == torch.float32 else 1e-10
     torch.testing.assert_close(x_compiled, x_torch, rtol=0.0, atol=tolerance)
+
+
+def test_mix_is_the_splitmix64_finaliser() -> None:
+    # The sampler's random words: the compiled hash against the finaliser in Python integers.
+    from meridian_torch.matching.particle_noise import mix
+
+    def reference(value: int) -> int:
+        z = value % 2**64
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) % 2**64
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) % 2**64
+        z ^= z >> 31
+        return z - 2**64 if z >= 2**63 else z
+
+    words = torch.randint(-(1 << 63), (1 << 63) - 1, (6, 5), generator=torch.Generator().manual_seed(2))
+    words[0, :4] = torch.tensor([0, 1, -1, -(1 << 63)])
+    mixed = mix(words)
+    assert mixed.shape == words.shape and mixed.dtype == torch.int64
+    assert mixed.flatten().tolist() == [reference(v) for v in words.flatten().tolist()]
+    assert mix(words[:, 1]).tolist() == mixed[:, 1].tolist()  # strided input
