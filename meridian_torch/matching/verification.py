@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
+from numba import njit
 from torch import Tensor
 
 from meridian_torch.config.matching import VerificationConfig
@@ -48,48 +50,101 @@ def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
 
 def segments_near_points(points: Tensor, ends: Tensor, valid: Tensor, radius: float) -> tuple[Tensor, Tensor]:
     """Pairs of a point points[p, q] (P, Q, 2) and a valid segment ends[p, m] (P, M, 2, 2) of
-    the same patch as flat indices (p Q + q, p M + m): every pair closer than `radius`, and
-    some farther ones. A grid of radius / 2 apart samples along every segment, each registered
-    in the 3 x 3 cells of 1.5 radius around its own; a point takes its cell's segments.
-    Exhaustive because a point within radius of a segment is within 1.25 radius of a sample,
-    less than one cell (verification's cost on real patches was the (pose, piece, aerial line)
-    product, of which a few per cent lie that close)."""
-    n_patches, n_points = points.shape[:2]
+    the same patch as flat indices (p Q + q, p M + m), ascending: every pair closer than
+    `radius`, and some farther ones. A grid of radius / 2 apart samples along every segment,
+    each registered in the 3 x 3 cells of 1.5 radius around its own; a point takes its cell's
+    segments. Exhaustive because a point within radius of a segment is within 1.25 radius of a
+    sample, less than one cell (verification's cost on real patches was the (pose, piece, aerial
+    line) product, of which a few per cent lie that close). Compiled, on the CPU: as torch ops
+    the grid's index arithmetic over every sample and point was half of verification."""
+    arrays = [t.detach().cpu().contiguous().numpy() for t in (points.to(torch.float64), ends.to(torch.float64), valid)]
+    query, segment = _near_pairs(*arrays, float(radius))
+    return torch.from_numpy(query).to(points.device), torch.from_numpy(segment).to(points.device)
+
+
+@njit(cache=True, nogil=True)
+def _near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """`segments_near_points` on float64 arrays, one patch at a time."""
+    n_patches, n_points = points.shape[0], points.shape[1]
     n_segments = ends.shape[1]
     cell, spacing = 1.5 * radius, 0.5 * radius
-    a, b = ends[..., 0, :].reshape(-1, 2), ends[..., 1, :].reshape(-1, 2)
-    n_samples = (torch.ceil((b - a).norm(dim=-1) / spacing).long() + 1) * valid.reshape(-1)
-    segment = torch.repeat_interleave(torch.arange(len(a), device=a.device), n_samples)
-    step = torch.arange(len(segment), device=a.device) - (torch.cumsum(n_samples, 0) - n_samples)[segment]
-    f = (step / (n_samples[segment] - 1).clamp_min(1)).to(a.dtype)[:, None]
-    samples = a[segment] + f * (b[segment] - a[segment])
-    patch = segment // max(n_segments, 1)
-    # Per patch grid from two cells below its lowest sample: every neighbour cell index is >= 0
-    # even where rounding puts a sample one cell lower.
-    origin = torch.full((n_patches, 2), math.inf, dtype=a.dtype, device=a.device)
-    origin = origin.scatter_reduce(0, patch[:, None].expand(-1, 2), samples, "amin") - 2 * cell
-    ij = torch.floor((samples - origin[patch]) / cell).long()
-    size = ij.amax(0) + 2 if len(ij) else torch.ones(2, dtype=torch.long, device=a.device)
-    width, height = int(size[0]), int(size[1])
-    offsets = torch.tensor([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=a.device)
-    cells = ij[:, None, :] + offsets  # (samples, 9, 2)
-    key = (patch[:, None] * height + cells[..., 1]) * width + cells[..., 0]
-    n_keys = n_patches * height * width
-    # unique: one entry per (cell, segment), cells ascending.
-    entry = torch.unique(key * len(a) + segment[:, None])
-    entry_segment, entry_key = entry % max(len(a), 1), entry // max(len(a), 1)
-    counts = torch.bincount(entry_key, minlength=n_keys)
-    starts = torch.cumsum(counts, 0) - counts
-    # Each point's cell (points of patches without segments, or outside the grid, take none).
-    q_patch = torch.arange(n_patches, device=a.device).repeat_interleave(n_points)
-    q_ij = torch.floor((points.reshape(-1, 2) - origin[q_patch]) / cell)
-    inside = torch.isfinite(q_ij).all(-1) & (q_ij >= 0).all(-1) & (q_ij[:, 0] < width) & (q_ij[:, 1] < height)
-    q_ij = torch.where(inside[:, None], q_ij, 0).long()
-    q_key = (q_patch * height + q_ij[:, 1]) * width + q_ij[:, 0]
-    q_count = counts[q_key] * inside
-    query = torch.repeat_interleave(torch.arange(len(q_key), device=a.device), q_count)
-    position = torch.arange(len(query), device=a.device) + (starts[q_key] - torch.cumsum(q_count, 0) + q_count)[query]
-    return query, entry_segment[position]
+    query = np.empty(1024, np.int64)
+    segment = np.empty(1024, np.int64)
+    n_out = 0
+    for p in range(n_patches):
+        counts = np.zeros(n_segments, np.int64)
+        for m in range(n_segments):
+            if valid[p, m]:
+                length = np.hypot(ends[p, m, 1, 0] - ends[p, m, 0, 0], ends[p, m, 1, 1] - ends[p, m, 0, 1])
+                counts[m] = int(np.ceil(length / spacing)) + 1
+        n_samples = counts.sum()
+        if n_samples == 0:
+            continue
+        xy = np.empty((n_samples, 2))
+        owner = np.empty(n_samples, np.int64)
+        k = 0
+        for m in range(n_segments):
+            for step in range(counts[m]):
+                f = step / max(counts[m] - 1, 1)
+                for axis in range(2):
+                    a = ends[p, m, 0, axis]
+                    xy[k, axis] = a + f * (ends[p, m, 1, axis] - a)
+                owner[k] = m
+                k += 1
+        # The grid starts two cells below the lowest sample, so every neighbour cell is >= 0.
+        x0, y0 = xy[:, 0].min() - 2 * cell, xy[:, 1].min() - 2 * cell
+        cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
+        cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
+        width, height = cx.max() + 2, cy.max() + 2
+        # Each cell's segments, ascending and once: samples come segment by segment, so a cell
+        # sees its segments in order and a repeat is always the cell's last one.
+        n_cells = width * height
+        starts = np.zeros(n_cells + 1, np.int64)
+        last = np.full(n_cells, -1, np.int64)
+        for k in range(n_samples):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    c = (cy[k] + dy) * width + cx[k] + dx
+                    if last[c] != owner[k]:
+                        last[c] = owner[k]
+                        starts[c + 1] += 1
+        starts = np.cumsum(starts)
+        cell_segments = np.empty(starts[-1], np.int64)
+        fill = starts[:-1].copy()
+        last[:] = -1
+        for k in range(n_samples):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    c = (cy[k] + dy) * width + cx[k] + dx
+                    if last[c] != owner[k]:
+                        last[c] = owner[k]
+                        cell_segments[fill[c]] = owner[k]
+                        fill[c] += 1
+        for q in range(n_points):
+            x, y = points[p, q, 0], points[p, q, 1]
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            i, j = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
+            if i < 0 or j < 0 or i >= width or j >= height:
+                continue
+            c = int(j) * width + int(i)
+            need = n_out + starts[c + 1] - starts[c]
+            if need > len(query):
+                capacity = max(2 * len(query), need)
+                query = _grown(query, capacity)
+                segment = _grown(segment, capacity)
+            for e in range(starts[c], starts[c + 1]):
+                query[n_out] = p * n_points + q
+                segment[n_out] = p * n_segments + cell_segments[e]
+                n_out += 1
+    return query[:n_out].copy(), segment[:n_out].copy()
+
+
+@njit(cache=True, nogil=True)
+def _grown(array: np.ndarray, capacity: int) -> np.ndarray:
+    out = np.empty(capacity, array.dtype)
+    out[: len(array)] = array
+    return out
 
 
 def alignment_score(
