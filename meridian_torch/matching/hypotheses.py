@@ -105,30 +105,29 @@ def register_sets(
     dtype = src_pt.dtype
     B = n_patches * n_sets
 
-    weights = (sets.masks & assoc.valid[:, None, :]).to(dtype)
-    patch = torch.arange(n_patches, device=weights.device).repeat_interleave(n_sets)[:, None]
+    used = sets.masks & assoc.valid[:, None, :]
+    patch = torch.arange(n_patches, device=used.device).repeat_interleave(n_sets)[:, None]
 
-    def members(w: Tensor) -> tuple[Tensor, Tensor]:
-        """Weights (B, width) and indices (B, width) of each set's few members, instead of all m
-        associations; index n (one past the end) marks padding."""
-        w = w.reshape(B, -1)
-        n = w.shape[1]
-        used = w > 0
+    def members(used: Tensor) -> tuple[Tensor, Tensor]:
+        """Unit weights (B, width) and indices (B, width) of each set's few members, instead of
+        all m associations; index n (one past the end) marks padding (weight 0)."""
+        used = used.reshape(B, -1)
+        n = used.shape[1]
         count = used.sum(1)
         width = max(int(count.max()) if n and B else 0, 1)
         # Each set's members in ascending order: the nonzeros are listed row by row.
         row, column = used.nonzero(as_tuple=True)
-        slot = torch.arange(len(row), device=w.device) - (torch.cumsum(count, 0) - count)[row]
-        index = torch.full((B, width), n, dtype=torch.int64, device=w.device)
+        slot = torch.arange(len(row), device=used.device) - (torch.cumsum(count, 0) - count)[row]
+        index = torch.full((B, width), n, dtype=torch.int64, device=used.device)
         index[row, slot] = column
-        return torch.cat([w, w.new_zeros(B, 1)], 1).gather(1, index), index
+        return (index < n).to(dtype), index
 
     def take(geometry: Tensor, index: Tensor) -> Tensor:
         padded = torch.cat([geometry, geometry.new_zeros(n_patches, 1, *geometry.shape[2:])], 1)
         return padded[patch, index]
 
-    w_pt, i_pt = members(weights[..., :k])
-    w_ln, i_ln = members(weights[..., k:])
+    w_pt, i_pt = members(used[..., :k])
+    w_ln, i_ln = members(used[..., k:])
     src_pt_c, dst_pt_c, src_ln_c, dst_ln_c = take(src_pt, i_pt), take(dst_pt, i_pt), take(src_ln, i_ln), take(dst_ln, i_ln)
     result = register_se2(src_pt_c, dst_pt_c, w_pt, src_ln_c, dst_ln_c, w_ln, config=config)
     shaped = {name: getattr(result, name).reshape(n_patches, n_sets, *getattr(result, name).shape[1:])
