@@ -81,29 +81,35 @@ def _gate(gat: _Gathered, r0: int, r1: int, c0: int, c1: int, kind: str, cfg: Af
     return ok
 
 
+def _spans(gat: _Gathered, cfg: AffinityConfig) -> list[tuple[int, int, int, int, str]]:
+    """The evaluation order: row blocks of ~block_pairs pairs (which bound the torch path's peak
+    memory), each with its column spans, as (r0, r1, c0, c1, kind), strict upper triangle."""
+    n_patches, m = gat.valid.shape
+    mp = gat.n_point_assoc
+    rows = max(1, cfg.block_pairs // max(1, n_patches * m))
+    spans = []
+    for start, stop in ((0, mp), (mp, m)):
+        for r0 in range(start, stop, rows):
+            r1 = min(r0 + rows, stop)
+            candidates = [(r0, mp, "pp"), (mp, m, "pl")] if r0 < mp else [(r0, m, "ll")]
+            spans += [(r0, r1, c0, c1, kind) for c0, c1, kind in candidates if c0 < c1]
+    return spans
+
+
 def _entries(gat: _Gathered, cfg: AffinityConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Non-zero strict-upper-triangle entries: indices (n, 3) of (patch, i, j) and M values (n,).
 
     M = cbrt(s q_i q_j); one-to-one conflicts, entries with M <= affinity_eps and padding are
-    left out. Rows are evaluated in blocks of ~block_pairs pairs, which bounds peak memory.
+    left out. Entries come span by span (`_spans`), within a span by (patch, i, j).
     """
-    n_patches, m = gat.valid.shape
-    mp = gat.n_point_assoc
-    rows = max(1, cfg.block_pairs // max(1, n_patches * m))
     indices, values = [], []
-    for start, stop in ((0, mp), (mp, m)):
-        for r0 in range(start, stop, rows):
-            r1 = min(r0 + rows, stop)
-            spans = [(r0, mp, "pp"), (mp, m, "pl")] if r0 < mp else [(r0, m, "ll")]
-            for c0, c1, kind in spans:
-                if c1 <= c0:
-                    continue
-                nz = _gate(gat, r0, r1, c0, c1, kind, cfg).nonzero()
-                b, i, j = nz[:, 0], nz[:, 1] + r0, nz[:, 2] + c0
-                product = _pair_scores(gat, b, i, j, kind, cfg) * gat.q[b, i] * gat.q[b, j]
-                keep = product > cfg.affinity_eps**3
-                indices.append(torch.stack([b, i, j], 1)[keep])
-                values.append(product[keep].pow(1.0 / 3.0))
+    for r0, r1, c0, c1, kind in _spans(gat, cfg):
+        nz = _gate(gat, r0, r1, c0, c1, kind, cfg).nonzero()
+        b, i, j = nz[:, 0], nz[:, 1] + r0, nz[:, 2] + c0
+        product = _pair_scores(gat, b, i, j, kind, cfg) * gat.q[b, i] * gat.q[b, j]
+        keep = product > cfg.affinity_eps**3
+        indices.append(torch.stack([b, i, j], 1)[keep])
+        values.append(product[keep].pow(1.0 / 3.0))
     if not indices:
         return torch.zeros(0, 3, dtype=torch.int64, device=gat.q.device), gat.q.new_zeros(0)
     return torch.cat(indices), torch.cat(values)
