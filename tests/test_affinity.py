@@ -10,6 +10,7 @@ import torch
 from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.affinity import (
     affinity,
+    affinity_entries,
     affinity_matrix,
     affinity_matrix_sparse,
     closest_points_between_lines,
@@ -17,6 +18,8 @@ from meridian_torch.matching.affinity import (
     nearest_point_on_line,
     unary_scores,
 )
+from meridian_torch.matching.affinity.blocks import _entries
+from meridian_torch.matching.affinity.gather import _gather
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
@@ -365,6 +368,68 @@ def test_parallel_separation_equals_loop(seed: int, with_prior: bool) -> None:
     kept = reject > 0
     torch.testing.assert_close(dense[kept], reject[kept], atol=1e-12, rtol=0)
     assert int((dense > 0).sum()) >= int(kept.sum()) + 10  # >= 5 parallel pairs, both triangles
+
+
+def without(s: PrimitiveSet, points: bool = False, lines: bool = False) -> PrimitiveSet:
+    """The set with its points and / or its lines removed."""
+    keep_p = slice(0, 0) if points else slice(None)
+    keep_l = slice(0, 0) if lines else slice(None)
+    return PrimitiveSet(
+        points_xy=s.points_xy[keep_p],
+        point_descriptors=s.point_descriptors[keep_p],
+        point_segment_ids=s.point_segment_ids[keep_p],
+        line_endpoints=s.line_endpoints[keep_l],
+        line_kinds=s.line_kinds[keep_l],
+        line_descriptors=s.line_descriptors[keep_l],
+        line_segment_ids=s.line_segment_ids[keep_l],
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_entries_equal_torch_path(seed: int, dtype: torch.dtype) -> None:
+    """The numba kernel (CPU) and the torch ops (other devices) give the same entries in the same
+    order, with and without a rotation prior, in every scoring mode, on batches with padding,
+    an empty patch and patches without lines or without points."""
+    gen = torch.Generator().manual_seed(20 + seed)
+    ground = random_scene(gen, 12, 16, roads=seed == 2)
+    patches, yaws = [], []
+    for n_keep_p, n_keep_l, n_extra in ((12, 16, 4), (8, 10, 6), (12, 16, 0), (5, 12, 3)):
+        # noisy_patch draws its yaw first: read it from a copy of the generator state.
+        yaws.append(float(torch.rand((), generator=torch.Generator().set_state(gen.get_state()))) * 2 * math.pi)
+        patches.append(noisy_patch(ground, gen, n_keep_p, n_keep_l, n_extra))
+    patches[1] = without(patches[1], lines=True)
+    patches[3] = without(patches[3], points=True)
+    patches.append(without(patches[0], points=True, lines=True))
+    yaws.append(0.0)
+    batch = stack_primitive_sets(patches).to(dtype=dtype)
+    grounds = [ground, without(ground, points=True)] if seed == 0 else [ground]
+    # Priors near the true headings (line associations keep their q) and random ones.
+    random_yaws = torch.rand(len(patches), generator=gen, dtype=torch.float64) * 2 * math.pi
+    priors = [None, torch.tensor(yaws, dtype=torch.float64) + 0.05, random_yaws]
+    configs = [
+        AffinityConfig(parallel_line_pairs="reject", block_pairs=700),
+        AffinityConfig(parallel_line_pairs="separation"),
+        AffinityConfig(parallel_line_pairs="separation", lever_arm_inflation=False, affinity_eps=0.0, block_pairs=3000),
+    ]
+    for g in grounds:
+        assoc = putative_associations(g, batch, k_prim=3, direction="union", min_line_length_m=2.0)
+        assert not assoc.valid.all()  # padding
+        for cfg in configs:
+            for prior in priors:
+                gat = _gather(g, batch, assoc, cfg, prior)
+                index, value = _entries(gat, cfg, compiled=False)
+                index_c, value_c = _entries(gat, cfg, compiled=True)
+                # Every kind of pair scores in every combination (0 pp, 1 pl, 2 ll).
+                kinds = (index[:, 1:] >= assoc.n_point_assoc).sum(1)
+                assert set(kinds.tolist()) == ({0, 1, 2} if assoc.n_ground_points else {2})
+                assert torch.equal(index_c, index)
+                assert value_c.dtype == value.dtype
+                # float32: libm's exp and pow differ from torch's by an ulp on ~1 % of arguments.
+                torch.testing.assert_close(value_c, value, rtol=1e-6 if dtype == torch.float32 else 1e-14, atol=0)
+                # On the CPU the public entry point takes the compiled path.
+                default = affinity_entries(g, batch, assoc, cfg, rotation_prior=prior)
+                assert torch.equal(default.index, index_c) and torch.equal(default.value, value_c)
 
 
 def test_closest_points_equal_loop() -> None:

@@ -1,5 +1,6 @@
 """Gated evaluation of the affinity: a cheap necessary condition over all association pairs of
-a row block, the exact scores only on the survivors (a few per cent), as flat index lists."""
+a row block, the exact scores only on the survivors, as flat index lists; for CPU tensors the
+compiled kernel (`compiled`) does both pair by pair."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import math
 import torch
 
 from meridian_torch.config.matching import AffinityConfig
+from meridian_torch.matching.affinity.compiled import _compiled_entries
 from meridian_torch.matching.affinity.gather import _GATE_SLACK, _Gathered, _rotate
 from meridian_torch.matching.affinity.scores import _line_line_score, _point_line_score, _point_pair_score
 
@@ -96,14 +98,22 @@ def _spans(gat: _Gathered, cfg: AffinityConfig) -> list[tuple[int, int, int, int
     return spans
 
 
-def _entries(gat: _Gathered, cfg: AffinityConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def _entries(gat: _Gathered, cfg: AffinityConfig, compiled: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Non-zero strict-upper-triangle entries: indices (n, 3) of (patch, i, j) and M values (n,).
 
     M = cbrt(s q_i q_j); one-to-one conflicts, entries with M <= affinity_eps and padding are
-    left out. Entries come span by span (`_spans`), within a span by (patch, i, j).
+    left out. compiled: score with the numba kernel (`compiled`; default: for CPU tensors)
+    instead of the torch ops. Both emit the same entries in the same order, span by span and
+    within a span by (patch, i, j): sums over the entries downstream (the pruning's index_add_)
+    then do not depend on the path. Values may differ by a few ulps (see `compiled`).
     """
+    spans = _spans(gat, cfg)
+    if compiled is None:
+        compiled = gat.q.device.type == "cpu"
+    if compiled:
+        return _compiled_entries(gat, spans, cfg)
     indices, values = [], []
-    for r0, r1, c0, c1, kind in _spans(gat, cfg):
+    for r0, r1, c0, c1, kind in spans:
         nz = _gate(gat, r0, r1, c0, c1, kind, cfg).nonzero()
         b, i, j = nz[:, 0], nz[:, 1] + r0, nz[:, 2] + c0
         product = _pair_scores(gat, b, i, j, kind, cfg) * gat.q[b, i] * gat.q[b, j]
