@@ -8,21 +8,17 @@ import functools
 
 import numpy as np
 import torch
-from numba import njit
 from torch import Tensor
+
+from meridian_torch.matching.kernels import mix_words
 
 __all__ = [
     "ROW", "add_noise_", "circular_table", "mix", "patch_seeds", "row_words", "slab_table", "step_noise", "uniform",
 ]
 
-# splitmix64 constants as signed int64 (torch has no uint64 arithmetic); products wrap mod 2^64.
-_MIX_1 = 0xBF58476D1CE4E5B9 - (1 << 64)
-_MIX_2 = 0x94D049BB133111EB - (1 << 64)
+# Signed int64 constants (torch has no uint64 arithmetic); products and sums wrap mod 2^64.
 _GOLDEN = 0x9E3779B97F4A7C15 - (1 << 64)
 ROW = 0xD1B54A32D192ED03 - (1 << 64)
-# The same as unsigned words for the compiled hash (numba's uint64 shifts are logical).
-_MIX_1_U, _MIX_2_U = np.uint64(_MIX_1 + (1 << 64)), np.uint64(_MIX_2 + (1 << 64))
-_SHIFT_27, _SHIFT_30, _SHIFT_31 = np.uint64(27), np.uint64(30), np.uint64(31)
 # Fixed seed (independent of the caller's generator) of the noise table; the table is long
 # enough that two patches' slabs rarely overlap.
 _TABLE_SEED = 0x7AB1E
@@ -39,19 +35,7 @@ def mix(z: Tensor) -> Tensor:
     on the CPU in one compiled pass: as ~10 torch ops over a match's million words it took 3 %
     of the match)."""
     words = z.detach().to("cpu", torch.int64).contiguous().numpy().view(np.uint64)
-    return torch.from_numpy(_mix_words(words).view(np.int64)).to(z.device)
-
-
-@njit(cache=True, nogil=True)
-def _mix_words(z: np.ndarray) -> np.ndarray:
-    out = np.empty_like(z)
-    flat_in, flat_out = z.reshape(-1), out.reshape(-1)
-    for k in range(flat_in.size):
-        v = flat_in[k]
-        v = (v ^ (v >> _SHIFT_30)) * _MIX_1_U
-        v = (v ^ (v >> _SHIFT_27)) * _MIX_2_U
-        flat_out[k] = v ^ (v >> _SHIFT_31)
-    return out
+    return torch.from_numpy(mix_words(words).view(np.int64)).to(z.device)
 
 
 def wrap64(value: int) -> int:

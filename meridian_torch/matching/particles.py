@@ -58,7 +58,7 @@ from torch import Tensor
 from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.matching.affinity import AffinityEntries
-from meridian_torch.matching.langevin_kernel import langevin_patches
+from meridian_torch.matching.kernels import langevin_patches
 from meridian_torch.matching.particle_noise import (
     ROW,
     add_noise_,

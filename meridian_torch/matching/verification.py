@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
-from numba import njit
 from torch import Tensor
 
 from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.geometry.segments import squared_segment_distance
 from meridian_torch.matching.hypotheses import Hypotheses
+from meridian_torch.matching.kernels import near_pairs
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = ["alignment_score", "line_pieces", "reweight_hypotheses", "segments_near_points"]
@@ -58,93 +57,8 @@ def segments_near_points(points: Tensor, ends: Tensor, valid: Tensor, radius: fl
     line) product, of which a few per cent lie that close). Compiled, on the CPU: as torch ops
     the grid's index arithmetic over every sample and point was half of verification."""
     arrays = [t.detach().cpu().contiguous().numpy() for t in (points.to(torch.float64), ends.to(torch.float64), valid)]
-    query, segment = _near_pairs(*arrays, float(radius))
+    query, segment = near_pairs(*arrays, float(radius))
     return torch.from_numpy(query).to(points.device), torch.from_numpy(segment).to(points.device)
-
-
-@njit(cache=True, nogil=True)
-def _near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """`segments_near_points` on float64 arrays, one patch at a time."""
-    n_patches, n_points = points.shape[0], points.shape[1]
-    n_segments = ends.shape[1]
-    cell, spacing = 1.5 * radius, 0.5 * radius
-    query = np.empty(1024, np.int64)
-    segment = np.empty(1024, np.int64)
-    n_out = 0
-    for p in range(n_patches):
-        counts = np.zeros(n_segments, np.int64)
-        for m in range(n_segments):
-            if valid[p, m]:
-                length = np.hypot(ends[p, m, 1, 0] - ends[p, m, 0, 0], ends[p, m, 1, 1] - ends[p, m, 0, 1])
-                counts[m] = int(np.ceil(length / spacing)) + 1
-        n_samples = counts.sum()
-        if n_samples == 0:
-            continue
-        xy = np.empty((n_samples, 2))
-        owner = np.empty(n_samples, np.int64)
-        k = 0
-        for m in range(n_segments):
-            for step in range(counts[m]):
-                f = step / max(counts[m] - 1, 1)
-                for axis in range(2):
-                    a = ends[p, m, 0, axis]
-                    xy[k, axis] = a + f * (ends[p, m, 1, axis] - a)
-                owner[k] = m
-                k += 1
-        # The grid starts two cells below the lowest sample, so every neighbour cell is >= 0.
-        x0, y0 = xy[:, 0].min() - 2 * cell, xy[:, 1].min() - 2 * cell
-        cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
-        cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
-        width, height = cx.max() + 2, cy.max() + 2
-        # Each cell's segments, ascending and once: samples come segment by segment, so a cell
-        # sees its segments in order and a repeat is always the cell's last one.
-        n_cells = width * height
-        starts = np.zeros(n_cells + 1, np.int64)
-        last = np.full(n_cells, -1, np.int64)
-        for k in range(n_samples):
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    c = (cy[k] + dy) * width + cx[k] + dx
-                    if last[c] != owner[k]:
-                        last[c] = owner[k]
-                        starts[c + 1] += 1
-        starts = np.cumsum(starts)
-        cell_segments = np.empty(starts[-1], np.int64)
-        fill = starts[:-1].copy()
-        last[:] = -1
-        for k in range(n_samples):
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    c = (cy[k] + dy) * width + cx[k] + dx
-                    if last[c] != owner[k]:
-                        last[c] = owner[k]
-                        cell_segments[fill[c]] = owner[k]
-                        fill[c] += 1
-        for q in range(n_points):
-            x, y = points[p, q, 0], points[p, q, 1]
-            if not (np.isfinite(x) and np.isfinite(y)):
-                continue
-            i, j = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
-            if i < 0 or j < 0 or i >= width or j >= height:
-                continue
-            c = int(j) * width + int(i)
-            need = n_out + starts[c + 1] - starts[c]
-            if need > len(query):
-                capacity = max(2 * len(query), need)
-                query = _grown(query, capacity)
-                segment = _grown(segment, capacity)
-            for e in range(starts[c], starts[c + 1]):
-                query[n_out] = p * n_points + q
-                segment[n_out] = p * n_segments + cell_segments[e]
-                n_out += 1
-    return query[:n_out].copy(), segment[:n_out].copy()
-
-
-@njit(cache=True, nogil=True)
-def _grown(array: np.ndarray, capacity: int) -> np.ndarray:
-    out = np.empty(capacity, array.dtype)
-    out[: len(array)] = array
-    return out
 
 
 def alignment_score(

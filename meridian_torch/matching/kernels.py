@@ -1,19 +1,28 @@
-"""Compiled (numba) Langevin loop of the particle sampler for CPU tensors: every step of one patch
-(sparse drift, noise, RMSprop, projection, renormalisation, early-stop check) in a few passes
-over its (m, N) particles, which stay in the core's cache for all its steps. The torch loop in
-`matching.particles` makes ~12 passes over the whole (P, m, N) batch per step, which is memory
-traffic, not arithmetic (a match spent 40 % of its time there).
+"""Compiled (numba) kernels of matching, for CPU arrays; each replaced a chain of torch ops whose
+passes over large intermediates, not arithmetic, were the cost.
 
-Same dynamics, same noise: only the rounding differs (operation order and fused multiply-adds
-of torch's kernels), so runs agree with the torch loop statistically, not bitwise. A patch's
-result depends only on its own data and seed, never on the batch or its padding."""
+- `langevin_patches`: the particle sampler's Langevin loop (`matching.particles`), every step of
+  one patch (sparse drift, noise, RMSprop, projection, renormalisation, early-stop check) in a
+  few passes over its (m, N) particles, which stay in the core's cache for all its steps; the
+  torch loop makes ~12 passes over the whole (P, m, N) batch per step (40 % of a match). Same
+  dynamics and noise, other rounding (operation order and torch's fused multiply-adds), so it
+  agrees with the torch loop to rounding, not bitwise. A patch's result depends only on its own
+  data and seed, never on the batch or its padding.
+- `mix_words`: the splitmix64 finaliser of the sampler's random words (`matching.particle_noise`),
+  bitwise the torch expression.
+- `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-__all__ = ["langevin_patches"]
+__all__ = ["langevin_patches", "mix_words", "near_pairs"]
+
+# splitmix64's finaliser constants and shifts as unsigned words.
+_MIX_1, _MIX_2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+_SHIFT_27, _SHIFT_30, _SHIFT_31 = np.uint64(27), np.uint64(30), np.uint64(31)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -159,3 +168,101 @@ def _normalise(x: np.ndarray, norm: np.ndarray, column: np.ndarray) -> None:
         v = x[c] / norm[c]
         x[c] = v
         column[c] += v
+
+
+@njit(cache=True, nogil=True)
+def mix_words(z: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser of uint64 words (numba's uint64 shifts are logical, products wrap)."""
+    out = np.empty_like(z)
+    flat_in, flat_out = z.reshape(-1), out.reshape(-1)
+    for k in range(flat_in.size):
+        v = flat_in[k]
+        v = (v ^ (v >> _SHIFT_30)) * _MIX_1
+        v = (v ^ (v >> _SHIFT_27)) * _MIX_2
+        flat_out[k] = v ^ (v >> _SHIFT_31)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """`verification.segments_near_points` on float64 arrays, one patch at a time."""
+    n_patches, n_points = points.shape[0], points.shape[1]
+    n_segments = ends.shape[1]
+    cell, spacing = 1.5 * radius, 0.5 * radius
+    query = np.empty(1024, np.int64)
+    segment = np.empty(1024, np.int64)
+    n_out = 0
+    for p in range(n_patches):
+        counts = np.zeros(n_segments, np.int64)
+        for m in range(n_segments):
+            if valid[p, m]:
+                length = np.hypot(ends[p, m, 1, 0] - ends[p, m, 0, 0], ends[p, m, 1, 1] - ends[p, m, 0, 1])
+                counts[m] = int(np.ceil(length / spacing)) + 1
+        n_samples = counts.sum()
+        if n_samples == 0:
+            continue
+        xy = np.empty((n_samples, 2))
+        owner = np.empty(n_samples, np.int64)
+        k = 0
+        for m in range(n_segments):
+            for step in range(counts[m]):
+                f = step / max(counts[m] - 1, 1)
+                for axis in range(2):
+                    a = ends[p, m, 0, axis]
+                    xy[k, axis] = a + f * (ends[p, m, 1, axis] - a)
+                owner[k] = m
+                k += 1
+        # The grid starts two cells below the lowest sample, so every neighbour cell is >= 0.
+        x0, y0 = xy[:, 0].min() - 2 * cell, xy[:, 1].min() - 2 * cell
+        cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
+        cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
+        width, height = cx.max() + 2, cy.max() + 2
+        # Each cell's segments, ascending and once: samples come segment by segment, so a cell
+        # sees its segments in order and a repeat is always the cell's last one.
+        n_cells = width * height
+        starts = np.zeros(n_cells + 1, np.int64)
+        last = np.full(n_cells, -1, np.int64)
+        for k in range(n_samples):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    c = (cy[k] + dy) * width + cx[k] + dx
+                    if last[c] != owner[k]:
+                        last[c] = owner[k]
+                        starts[c + 1] += 1
+        starts = np.cumsum(starts)
+        cell_segments = np.empty(starts[-1], np.int64)
+        fill = starts[:-1].copy()
+        last[:] = -1
+        for k in range(n_samples):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    c = (cy[k] + dy) * width + cx[k] + dx
+                    if last[c] != owner[k]:
+                        last[c] = owner[k]
+                        cell_segments[fill[c]] = owner[k]
+                        fill[c] += 1
+        for q in range(n_points):
+            x, y = points[p, q, 0], points[p, q, 1]
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            i, j = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
+            if i < 0 or j < 0 or i >= width or j >= height:
+                continue
+            c = int(j) * width + int(i)
+            need = n_out + starts[c + 1] - starts[c]
+            if need > len(query):
+                capacity = max(2 * len(query), need)
+                query = _grown(query, capacity)
+                segment = _grown(segment, capacity)
+            for e in range(starts[c], starts[c + 1]):
+                query[n_out] = p * n_points + q
+                segment[n_out] = p * n_segments + cell_segments[e]
+                n_out += 1
+    return query[:n_out].copy(), segment[:n_out].copy()
+
+
+@njit(cache=True, nogil=True)
+def _grown(array: np.ndarray, capacity: int) -> np.ndarray:
+    out = np.empty(capacity, array.dtype)
+    out[: len(array)] = array
+    return out
