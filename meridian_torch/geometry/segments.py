@@ -11,14 +11,16 @@ from __future__ import annotations
 import numpy as np
 from torch import Tensor
 
+from meridian_torch.geometry.vectors import dot2, squared_norm2
+
 __all__ = ["squared_segment_distance", "closest_point_on_segment"]
 
 
 def squared_segment_distance(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """Squared distance from points p (K, 2) to segments a-b (K, 2)."""
     ab = b - a
-    t = ((p - a) * ab).sum(-1) / ab.square().sum(-1).clamp_min(1e-12)
-    return (a + t.clamp(0.0, 1.0)[:, None] * ab - p).square().sum(-1)
+    t = dot2(p - a, ab) / squared_norm2(ab).clamp_min(1e-12)
+    return squared_norm2(a + t.clamp(0.0, 1.0)[:, None] * ab - p)
 
 
 def closest_point_on_segment(p: np.ndarray, a0: np.ndarray, a1: np.ndarray) -> np.ndarray:

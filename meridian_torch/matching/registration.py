@@ -39,6 +39,7 @@ import torch
 
 from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.geometry.se2 import rotation_matrix, se2_matrix, wrap_angle
+from meridian_torch.geometry.vectors import cross2, dot2, squared_norm2
 
 __all__ = ["RegistrationResult", "register_se2"]
 
@@ -120,7 +121,7 @@ def register_se2(
     # Normal equations H x = g of the weighted least squares in x = (cos θ, sin θ, tx, ty); see the
     # module docstring for the rows. The point rows (p_x, -p_y, 1, 0) and (p_y, p_x, 0, 1) with
     # targets q_x, q_y are summed in closed form so that no (B, m, 4) Jacobian is materialised.
-    p_sq = (w * (p**2).sum(-1)).sum(-1)
+    p_sq = (w * squared_norm2(p)).sum(-1)
     p_sum, q_sum = (w[..., None] * p).sum(1), (w[..., None] * q).sum(1)
     zeros_b = W.new_zeros(B)
     H = torch.stack(
@@ -132,13 +133,13 @@ def register_se2(
         ],
         -2,
     )
-    g = torch.stack([(w * _dot(p, q)).sum(-1), (w * _cross(p, q)).sum(-1), q_sum[:, 0], q_sum[:, 1]], -1)
-    offset_rows = torch.stack([_dot(dst_normal, a), _cross(a, dst_normal), *dst_normal.unbind(-1)], -1)
-    direction_rows = torch.stack([_dot(dst_normal, src_dir), _cross(src_dir, dst_normal)], -1)
+    g = torch.stack([(w * dot2(p, q)).sum(-1), (w * cross2(p, q)).sum(-1), q_sum[:, 0], q_sum[:, 1]], -1)
+    offset_rows = torch.stack([dot2(dst_normal, a), cross2(a, dst_normal), *dst_normal.unbind(-1)], -1)
+    direction_rows = torch.stack([dot2(dst_normal, src_dir), cross2(src_dir, dst_normal)], -1)
     H = H + torch.einsum("bki,bk,bkj->bij", offset_rows, v, offset_rows)
     direction_weight = cfg.line_direction_weight * v
     H[:, :2, :2] += torch.einsum("bki,bk,bkj->bij", direction_rows, direction_weight, direction_rows)
-    g = g + torch.einsum("bki,bk->bi", offset_rows, v * _dot(dst_normal, b))
+    g = g + torch.einsum("bki,bk->bi", offset_rows, v * dot2(dst_normal, b))
 
     # Eliminate t: for fixed u the optimum is t = Htt^-1 (g_t - Htr u).
     H_rr, H_rt, H_tt = H[:, :2, :2], H[:, :2, 2:], H[:, 2:, 2:]
@@ -213,15 +214,6 @@ def _check_shapes(
     if not src_points.is_floating_point():
         raise ValueError("src_points must be a floating-point tensor")
     return B
-
-
-def _dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1]
-
-
-def _cross(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """z-component of the 2D cross product x × y."""
-    return x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]
 
 
 def _quad(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -332,9 +324,9 @@ def _residuals(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted RMS point residual and point-to-line residual, computed in centred coordinates."""
     mapped = p @ R.transpose(1, 2) + t_centred[:, None]
-    point_sq = ((mapped - q) ** 2).sum(-1)
+    point_sq = squared_norm2(mapped - q)
     ends = src_line_ends @ R.transpose(1, 2)[:, None] + t_centred[:, None, None]
-    line_sq = (((ends - b[:, :, None]) * dst_normal[:, :, None]).sum(-1) ** 2).mean(-1)
+    line_sq = (dot2(ends - b[:, :, None], dst_normal[:, :, None]) ** 2).mean(-1)
     return _weighted_rms(point_sq, w), _weighted_rms(line_sq, v)
 
 

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.geometry.segments import squared_segment_distance
+from meridian_torch.geometry.vectors import dot2, squared_norm2
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.kernels import near_pairs
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
@@ -89,7 +90,7 @@ def alignment_score(
         # Only aerial lines closer than line_distance_m score; of those the near-parallel ones.
         piece, line = segments_near_points(mid.flatten(1, 2), A, aerial.line_valid, config.line_distance_m)
         u_piece, u_line = u_world.reshape(-1, 2).index_select(0, piece), au.reshape(-1, 2).index_select(0, line)
-        parallel = (u_piece * u_line).sum(-1).abs() >= math.cos(math.radians(config.line_angle_deg))
+        parallel = dot2(u_piece, u_line).abs() >= math.cos(math.radians(config.line_angle_deg))
         piece, line = piece[parallel], line[parallel]
         ends = A.reshape(-1, 4).index_select(0, line)
         d2 = squared_segment_distance(mid.reshape(-1, 2).index_select(0, piece), ends[:, :2], ends[:, 2:])
@@ -98,7 +99,7 @@ def alignment_score(
         score = score + (on_line * length).sum(-1)
     if len(ground.points_xy) and aerial.points_xy.shape[1]:
         p = torch.einsum("phij,nj->phni", R, ground.points_xy) + t[:, :, None]  # (P, H, N, 2)
-        dist2 = (p[:, :, :, None] - aerial.points_xy.to(dtype)[:, None, None]).square().sum(-1)
+        dist2 = squared_norm2(p[:, :, :, None] - aerial.points_xy.to(dtype)[:, None, None])
         closeness = (1.0 - dist2 / config.point_distance_m**2).clamp_min(0.0) * aerial.point_valid[:, None, None, :]
         score = score + config.point_weight_m * closeness.amax(-1).sum(-1)
     return score
