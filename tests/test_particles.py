@@ -228,3 +228,27 @@ def test_mix_is_the_splitmix64_finaliser() -> None:
     assert mixed.shape == words.shape and mixed.dtype == torch.int64
     assert mixed.flatten().tolist() == [reference(v) for v in words.flatten().tolist()]
     assert mix(words[:, 1]).tolist() == mixed[:, 1].tolist()  # strided input
+
+
+@pytest.mark.parametrize("support", [False, True])
+def test_compiled_rounding_equals_the_torch_sort(support: bool) -> None:
+    # CPU tensors round particles with a compiled selection, other devices with torch's stable
+    # sort: the same sets, sizes and one-to-one flags, also with exact zeros and tied values.
+    from meridian_torch.matching.particles import _select_sets
+
+    gen = torch.Generator().manual_seed(4)
+    _, valid, pairs = batch([planted_problem(40, 30, 6), planted_problem(41, 22, 5), planted_problem(42, 12, 4)])
+    valid[1, 3] = False
+    x = torch.rand(3, 30, 64, generator=gen)
+    x[torch.rand(x.shape, generator=gen) < 0.7] = 0.0  # settled particles are mostly zeros
+    x[:, :, :16] = torch.tensor([0.0, 0.25, 0.5])[torch.randint(0, 3, (3, 30, 16), generator=gen)]  # ties
+    x = x * valid[:, :, None]
+    n_valid = valid.sum(1, keepdim=True)
+    k = (torch.rand(3, 64, generator=gen) * (n_valid + 1)).long().clamp(max=n_valid)
+    compiled = _select_sets(x, k, valid, pairs, support, compiled=True)
+    reference = _select_sets(x, k, valid, pairs, support, compiled=False)
+    for got, want in zip(compiled, reference):
+        assert torch.equal(got, want)
+    masks, size, one_to_one = reference
+    assert not (masks & ~valid[:, None, :]).any()
+    assert (size > 3).any() and (~one_to_one).any() and one_to_one.any()  # the cases are exercised

@@ -266,3 +266,59 @@ def _grown(array: np.ndarray, capacity: int) -> np.ndarray:
     out = np.empty(capacity, array.dtype)
     out[: len(array)] = array
     return out
+
+
+@njit(cache=True, nogil=True)
+def round_particles(
+    x: np.ndarray, k: np.ndarray, valid: np.ndarray, pairs: np.ndarray, support: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sampler's rounding (`matching.particles`) of particles x (P, m, N): each particle's set
+    is its k[p, n] largest valid entries, ties in index order (or, with `support`, its valid
+    entries > 0). Returns masks (P, N, m) bool, sizes (P, N) and whether no ground and no aerial
+    primitive (pairs (P, m, 2)) is used twice (P, N).
+
+    Most entries of a settled particle are exactly 0, so its nonzeros are ranked alone (by
+    insertion) and the zeros, if the set needs any, follow in index order."""
+    n_patches, m, n_particles = x.shape
+    masks = np.zeros((n_patches, n_particles, m), np.bool_)
+    size = np.zeros((n_patches, n_particles), np.int64)
+    one_to_one = np.ones((n_patches, n_particles), np.bool_)
+    ranked = np.empty(m, np.int64)
+    chosen = np.empty(m, np.int64)
+    for p in range(n_patches):
+        for n in range(n_particles):
+            count = 0
+            if support:
+                for i in range(m):
+                    if valid[p, i] and x[p, i, n] > 0:
+                        chosen[count] = i
+                        count += 1
+            else:
+                n_ranked = 0
+                for i in range(m):
+                    value = x[p, i, n]
+                    if valid[p, i] and value != 0:
+                        slot = n_ranked  # insert after every larger or equal value (stable)
+                        while slot > 0 and x[p, ranked[slot - 1], n] < value:
+                            ranked[slot] = ranked[slot - 1]
+                            slot -= 1
+                        ranked[slot] = i
+                        n_ranked += 1
+                want = k[p, n]
+                for r in range(min(want, n_ranked)):
+                    chosen[count] = ranked[r]
+                    count += 1
+                for i in range(m):
+                    if count >= want:
+                        break
+                    if valid[p, i] and x[p, i, n] == 0:
+                        chosen[count] = i
+                        count += 1
+            size[p, n] = count
+            for a in range(count):
+                masks[p, n, chosen[a]] = True
+                for b in range(a):
+                    for side in range(2):
+                        if pairs[p, chosen[a], side] == pairs[p, chosen[b], side]:
+                            one_to_one[p, n] = False
+    return masks, size, one_to_one

@@ -58,7 +58,7 @@ from torch import Tensor
 from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.matching.affinity import AffinityEntries
-from meridian_torch.matching.kernels import langevin_patches
+from meridian_torch.matching.kernels import langevin_patches, round_particles
 from meridian_torch.matching.particle_noise import (
     ROW,
     add_noise_,
@@ -268,18 +268,38 @@ def _torch_dynamics(
     return x_out, iterations
 
 
-def _round(A: _BlockOperator, d: Tensor, valid: Tensor, x: Tensor, rounding: str) -> Tensor:
-    """(P, N, m) bool: the round(x' M_d x) largest valid entries of each particle x (P, m, N),
-    or its support ('support' rounding)."""
-    if rounding == "support":
-        return (x > 0).transpose(1, 2) & valid[:, None, :]
-    quad = (_drift(A, d, valid.to(x.dtype), x) * x).sum(1)
-    k = quad.round().clamp(min=0).minimum(d[:, None]).to(torch.int64)
-    x = x.transpose(1, 2)
-    # Padded entries sort last; the stable sort keeps ties (e.g. exact zeros) in index order.
-    order = torch.sort(x.masked_fill(~valid[:, None, :], -1.0), dim=-1, descending=True, stable=True).indices
-    take = torch.arange(x.shape[-1], device=x.device) < k[..., None]
-    return torch.zeros_like(take).scatter_(-1, order, take)
+def _rounded_sets(A: Tensor, d: Tensor, valid: Tensor, pairs: Tensor, x: Tensor, rounding: str) -> tuple[Tensor, Tensor, Tensor]:
+    """Each particle x (P, m, N) rounded to a set (`_select_sets`) of its round(x' M_d x)
+    largest valid entries, or its support ('support' rounding); A is the penalised affinity
+    (sparse COO)."""
+    support = rounding == "support"
+    k = torch.zeros(x.shape[0], x.shape[2], dtype=torch.int64, device=x.device)
+    if not support:
+        quad = (_drift(_BlockOperator(A), d, valid.to(x.dtype), x) * x).sum(1)
+        k = quad.round().clamp(min=0).minimum(d[:, None]).to(torch.int64)
+    return _select_sets(x, k, valid, pairs, support)
+
+
+def _select_sets(
+    x: Tensor, k: Tensor, valid: Tensor, pairs: Tensor, support: bool, compiled: bool | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Masks (P, N, m) bool of the k (P, N) largest valid entries of each particle x (P, m, N),
+    ties in index order (with `support`: its valid entries > 0), their sizes (P, N) and whether
+    the set uses no ground and no aerial primitive twice (P, N). `compiled` (default: on CPU
+    tensors) selects with `round_particles`, else with torch's stable sort (other devices): the
+    same sets."""
+    if x.device.type == "cpu" if compiled is None else compiled:
+        arrays = [t.detach().cpu().contiguous().numpy() for t in (x, k, valid, pairs)]
+        return tuple(torch.from_numpy(a).to(x.device) for a in round_particles(*arrays, support))
+    if support:
+        masks = (x > 0).transpose(1, 2) & valid[:, None, :]
+    else:
+        x = x.transpose(1, 2)
+        # Padded entries sort last; the stable sort keeps ties (e.g. exact zeros) in index order.
+        order = torch.sort(x.masked_fill(~valid[:, None, :], -1.0), dim=-1, descending=True, stable=True).indices
+        take = torch.arange(x.shape[-1], device=x.device) < k[..., None]
+        masks = torch.zeros_like(take).scatter_(-1, order, take)
+    return masks, masks.sum(-1), _one_to_one(masks, pairs)
 
 
 def _one_to_one(masks: Tensor, pairs: Tensor) -> Tensor:
@@ -374,9 +394,8 @@ def _sample(M: Tensor, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds:
     penalised = _penalised(M, d)
     x, iterations = _run_dynamics(penalised, d, valid, cfg, seeds)
 
-    masks = _round(_BlockOperator(penalised), d, valid, x, cfg.rounding)
-    size = masks.sum(-1)
-    keep = (size >= cfg.min_set_size) & _one_to_one(masks, pairs)
+    masks, size, one_to_one = _rounded_sets(penalised, d, valid, pairs, x, cfg.rounding)
+    keep = (size >= cfg.min_set_size) & one_to_one
     order, first, counts = _merge(masks, keep)
 
     # Rank the unique sets by J, padding last; S = the most unique sets any patch has (at least
