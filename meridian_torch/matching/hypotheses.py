@@ -29,6 +29,7 @@ from meridian_torch.core.timing import stage
 from meridian_torch.geometry.se2 import se2_matrix, wrap_angle
 from meridian_torch.geometry.vectors import squared_norm2
 from meridian_torch.matching.associations import Associations
+from meridian_torch.matching.kernels import greedy_representatives
 from meridian_torch.matching.particles import InlierSets
 from meridian_torch.matching.registration import RegistrationResult, register_se2
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
@@ -138,8 +139,12 @@ def register_sets(
     return RegistrationResult(**shaped)
 
 
-def _greedy_representatives(close: Tensor, valid: Tensor) -> Tensor:
-    """(P, S) bool: greedy cluster representatives in index order (see the module docstring)."""
+def _greedy_representatives(close: Tensor, valid: Tensor, compiled: bool | None = None) -> Tensor:
+    """(P, S) bool: greedy cluster representatives in index order (see the module docstring).
+    `compiled` (default: on CPU tensors) walks the sets once (`kernels.greedy_representatives`);
+    torch's fixed-point sweeps over (P, S, S) run on other devices: the same representatives."""
+    if close.device.type == "cpu" if compiled is None else compiled:
+        return torch.from_numpy(greedy_representatives(close.contiguous().numpy(), valid.contiguous().numpy()))
     earlier = torch.ones(close.shape[-2:], dtype=torch.bool, device=close.device).tril(diagonal=-1)
     blocked_by = close & earlier & valid[:, None, :] & valid[:, :, None]
     rep = valid.clone()

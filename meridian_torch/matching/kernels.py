@@ -322,3 +322,20 @@ def round_particles(
                         if pairs[p, chosen[a], side] == pairs[p, chosen[b], side]:
                             one_to_one[p, n] = False
     return masks, size, one_to_one
+
+
+@njit(cache=True, nogil=True)
+def greedy_representatives(close: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(P, S) bool: in index order, a valid set is a cluster representative unless it is close
+    (close (P, S, S) bool) to an earlier representative (`matching.hypotheses`)."""
+    n_patches, n_sets = valid.shape
+    rep = np.zeros((n_patches, n_sets), np.bool_)
+    for p in range(n_patches):
+        for s in range(n_sets):
+            if valid[p, s]:
+                rep[p, s] = True
+                for r in range(s):
+                    if rep[p, r] and close[p, s, r]:
+                        rep[p, s] = False
+                        break
+    return rep
