@@ -252,3 +252,15 @@ def test_compiled_rounding_equals_the_torch_sort(support: bool) -> None:
     masks, size, one_to_one = reference
     assert not (masks & ~valid[:, None, :]).any()
     assert (size > 3).any() and (~one_to_one).any() and one_to_one.any()  # the cases are exercised
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_uniform_takes_the_top_53_bits(dtype: torch.dtype) -> None:
+    from meridian_torch.matching.particle_noise import uniform
+
+    words = torch.randint(-(1 << 63), (1 << 63) - 1, (7, 4), generator=torch.Generator().manual_seed(5))
+    words[0, :3] = torch.tensor([0, -1, 1 << 11])
+    expected = torch.tensor([((v % 2**64) >> 11) * 2.0**-53 for v in words.flatten().tolist()], dtype=torch.float64)
+    got = uniform(words, dtype)
+    assert got.dtype == dtype and torch.equal(got.flatten(), expected.to(dtype))
+    assert got.min() >= 0 and got.max() <= 1 and got[0, 0] == 0 and got[0, 2] == 2.0**-53  # float32 may round up to 1

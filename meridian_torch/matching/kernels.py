@@ -8,8 +8,10 @@ passes over large intermediates, not arithmetic, were the cost.
   dynamics and noise, other rounding (operation order and torch's fused multiply-adds), so it
   agrees with the torch loop to rounding, not bitwise. A patch's result depends only on its own
   data and seed, never on the batch or its padding.
-- `mix_words`: the splitmix64 finaliser of the sampler's random words (`matching.particle_noise`),
-  bitwise the torch expression.
+- `mix_words`, `uniform_words`: the splitmix64 finaliser of the sampler's random words and their
+  uniform numbers (`matching.particle_noise`), bitwise the torch expressions.
+- `round_particles`, `greedy_representatives`: the sampler's rounding of particles to sets and the
+  greedy clustering of sets (`matching.hypotheses`), the same sets as torch's sort and sweeps.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 """
 
@@ -18,11 +20,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["langevin_patches", "mix_words", "near_pairs"]
+__all__ = [
+    "greedy_representatives", "langevin_patches", "mix_words", "near_pairs", "round_particles", "uniform_words",
+]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
 _MIX_1, _MIX_2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
-_SHIFT_27, _SHIFT_30, _SHIFT_31 = np.uint64(27), np.uint64(30), np.uint64(31)
+_SHIFT_11, _SHIFT_27, _SHIFT_30, _SHIFT_31 = np.uint64(11), np.uint64(27), np.uint64(30), np.uint64(31)
+_TWO_TO_MINUS_53 = 2.0**-53
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -339,3 +344,12 @@ def greedy_representatives(close: np.ndarray, valid: np.ndarray) -> np.ndarray:
                         rep[p, s] = False
                         break
     return rep
+
+
+@njit(cache=True, nogil=True)
+def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
+    """out = U[0, 1) from the top 53 bits of the uint64 words z (computed in float64, then
+    rounded to out's dtype)."""
+    flat_in, flat_out = z.reshape(-1), out.reshape(-1)
+    for k in range(flat_in.size):
+        flat_out[k] = np.float64(flat_in[k] >> _SHIFT_11) * _TWO_TO_MINUS_53
