@@ -23,10 +23,11 @@ Gaussian noise of one step is a slab of a fixed table of standard normals (made 
 process) read from a random offset per patch, entry (i, n) for coordinate i and particle n,
 with a random sign per particle: hashing every entry would cost as much as the drift.
 
-Cost: every step is in place on the (P, m, N) buffers (allocating them cost more than the
-arithmetic), and `match_submap` samples the pruned problems of all its patch chunks together
-(`particle_problem.concat_problems`), so the per-step overhead is paid once per match, not once
-per chunk.
+Cost: on the CPU the loop and the rounding are compiled (`matching.kernels`): one patch's
+particles at a time, in cache, each step in a few fused passes (3.4x less time than the torch
+loop, which stays for other devices: every step in place on the (P, m, N) buffers). Either way
+`match_submap` samples the pruned problems of all its patch chunks together
+(`particle_problem.concat_problems`), so the per-call overhead is paid once per match.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
