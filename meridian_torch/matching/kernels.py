@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "greedy_representatives", "langevin_patches", "mix_words", "near_pairs", "round_particles", "uniform_words",
+    "greedy_representatives", "grown", "langevin_patches", "mix_words", "near_pairs", "round_particles", "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
@@ -222,30 +222,12 @@ def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: 
         cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
         cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
         width, height = cx.max() + 2, cy.max() + 2
-        # Each cell's segments, ascending and once: samples come segment by segment, so a cell
-        # sees its segments in order and a repeat is always the cell's last one.
         n_cells = width * height
         starts = np.zeros(n_cells + 1, np.int64)
-        last = np.full(n_cells, -1, np.int64)
-        for k in range(n_samples):
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    c = (cy[k] + dy) * width + cx[k] + dx
-                    if last[c] != owner[k]:
-                        last[c] = owner[k]
-                        starts[c + 1] += 1
+        _cell_segments(cx, cy, owner, width, starts[1:], starts, False)
         starts = np.cumsum(starts)
         cell_segments = np.empty(starts[-1], np.int64)
-        fill = starts[:-1].copy()
-        last[:] = -1
-        for k in range(n_samples):
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    c = (cy[k] + dy) * width + cx[k] + dx
-                    if last[c] != owner[k]:
-                        last[c] = owner[k]
-                        cell_segments[fill[c]] = owner[k]
-                        fill[c] += 1
+        _cell_segments(cx, cy, owner, width, starts[:-1].copy(), cell_segments, True)
         for q in range(n_points):
             x, y = points[p, q, 0], points[p, q, 1]
             if not (np.isfinite(x) and np.isfinite(y)):
@@ -257,8 +239,8 @@ def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: 
             need = n_out + starts[c + 1] - starts[c]
             if need > len(query):
                 capacity = max(2 * len(query), need)
-                query = _grown(query, capacity)
-                segment = _grown(segment, capacity)
+                query = grown(query, capacity)
+                segment = grown(segment, capacity)
             for e in range(starts[c], starts[c + 1]):
                 query[n_out] = p * n_points + q
                 segment[n_out] = p * n_segments + cell_segments[e]
@@ -267,7 +249,27 @@ def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: 
 
 
 @njit(cache=True, nogil=True)
-def _grown(array: np.ndarray, capacity: int) -> np.ndarray:
+def _cell_segments(
+    cx: np.ndarray, cy: np.ndarray, owner: np.ndarray, width: int, slot: np.ndarray, out: np.ndarray, fill: bool
+) -> None:
+    """Each cell's segments, once and ascending, from the samples' 3 x 3 cells: samples come
+    segment by segment, so a cell sees its segments in order and a repeat is always its last.
+    Counts them into slot[cell], and with `fill` first writes each at out[slot[cell]]."""
+    last = np.full(len(slot), -1, np.int64)
+    for k in range(len(owner)):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                c = (cy[k] + dy) * width + cx[k] + dx
+                if last[c] != owner[k]:
+                    last[c] = owner[k]
+                    if fill:
+                        out[slot[c]] = owner[k]
+                    slot[c] += 1
+
+
+@njit(cache=True, nogil=True)
+def grown(array: np.ndarray, capacity: int) -> np.ndarray:
+    """`array` copied into a new array of `capacity` (the output buffers' doubling)."""
     out = np.empty(capacity, array.dtype)
     out[: len(array)] = array
     return out

@@ -34,8 +34,12 @@ def mix(z: Tensor) -> Tensor:
     """splitmix64 finaliser on int64 tensors: a bijective, well-avalanched 64-bit hash (computed
     on the CPU in one compiled pass: as ~10 torch ops over a match's million words it took 3 %
     of the match)."""
-    words = z.detach().to("cpu", torch.int64).contiguous().numpy().view(np.uint64)
-    return torch.from_numpy(mix_words(words).view(np.int64)).to(z.device)
+    return torch.from_numpy(mix_words(_cpu_words(z)).view(np.int64)).to(z.device)
+
+
+def _cpu_words(z: Tensor) -> np.ndarray:
+    """int64 words as a uint64 array on the CPU, for the compiled kernels."""
+    return z.detach().to("cpu", torch.int64).contiguous().numpy().view(np.uint64)
 
 
 def wrap64(value: int) -> int:
@@ -59,9 +63,8 @@ def uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
     """int64 words -> U[0, 1) from their top 53 bits in float64, rounded to dtype (float32 may give
     1.0); computed on the CPU in one compiled pass (four torch passes over a match's million
     words cost 2 %)."""
-    words = z.detach().to("cpu", torch.int64).contiguous().numpy().view(np.uint64)
     out = torch.empty(z.shape, dtype=dtype)
-    uniform_words(words, out.numpy())
+    uniform_words(_cpu_words(z), out.numpy())
     return out.to(z.device)
 
 

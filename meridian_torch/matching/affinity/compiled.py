@@ -27,6 +27,7 @@ from numba import njit, uint64
 
 from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.affinity.gather import _GATE_SLACK, _Gathered
+from meridian_torch.matching.kernels import grown
 
 _KINDS = ("pp", "pl", "ll")  # span kinds; their index is the kernel's kind code
 _PP, _PL, _LL = range(3)
@@ -227,13 +228,6 @@ def _line_line_score(fields, k, rotated, separation, lever_arm):
 
 
 @njit(cache=True, nogil=True)
-def _grown(x: np.ndarray, size: int) -> np.ndarray:
-    out = np.empty(size, x.dtype)
-    out[: len(x)] = x
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _span_entries(spans, arr, k, rotated, separation, lever_arm):
     """Entries M = cbrt(s q_i q_j) > affinity_eps of the spans (S, 5) (r0, r1, c0, c1, kind code),
     each visited patch by patch, row by row (the torch path's nonzero order), j > i only:
@@ -311,7 +305,7 @@ def _span_entries(spans, arr, k, rotated, separation, lever_arm):
                     if not product > k.eps_cubed:
                         continue
                     if n == len(value):
-                        index, value = _grown(index, 6 * n), _grown(value, 2 * n)
+                        index, value = grown(index, 6 * n), grown(value, 2 * n)
                     index[3 * n], index[3 * n + 1], index[3 * n + 2] = b, i, j
                     value[n] = product**k.third
                     n += 1
