@@ -13,6 +13,7 @@ from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.verification import (
     alignment_score,
     line_pieces,
+    piece_closeness,
     reweight_hypotheses,
     segments_near_points,
 )
@@ -222,3 +223,49 @@ def test_segments_near_points_where_rounding_moves_the_lowest_sample_a_cell_down
     ends = torch.tensor([[[[x, x], [x + 10.0, x + 3.0]]]], dtype=torch.float32)
     query, segment = segments_near_points(ends[:, :, 0], ends, torch.ones(1, 1, dtype=torch.bool), 1.5)
     assert query.tolist() == [0] and segment.tolist() == [0]
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+@pytest.mark.parametrize(("dtype", "offset", "angle_deg"), [
+    (torch.float32, 0.0, 10.0), (torch.float32, 7531.7, 25.0), (torch.float64, -123.4, 10.0), (torch.float32, 0.0, 3.0),  # 3: float32(cos) < cos
+])
+def test_piece_closeness_compiled_is_bitwise_the_torch_expressions(
+    dtype: torch.dtype, offset: float, angle_deg: float
+) -> None:
+    gen = torch.Generator().manual_seed(11)
+    cfg = VerificationConfig(line_distance_m=1.5, line_angle_deg=angle_deg)
+    ends = (torch.rand(4, 30, 2, 2, generator=gen, dtype=torch.float64) * 20 + offset).to(dtype)
+    ends[0, 1, 1] = ends[0, 1, 0]  # a degenerate segment (no direction)
+    ends[0, 2] = ends[0, 3]  # two equal segments
+    valid = torch.rand(4, 30, generator=gen) > 0.2
+    valid[3] = False  # a patch without segments
+    mid = (torch.rand(4, 200, 2, generator=gen, dtype=torch.float64) * 22 - 1 + offset).to(dtype)
+    mid[1, :30] = ends[1, :, 0] + 0.3  # pieces near segment ends
+    u_line = _unit(ends[:, :, 1] - ends[:, :, 0])
+    # Directions near the lines' directions, so that both sides of the angle test occur.
+    near = torch.randint(0, 30, (4, 200), generator=gen)
+    turn = (torch.rand(4, 200, generator=gen, dtype=torch.float64) - 0.5) * math.radians(4 * angle_deg)
+    base = u_line.gather(1, near[..., None].expand(-1, -1, 2)).to(torch.float64)
+    u_piece = torch.stack([base[..., 0] * turn.cos() - base[..., 1] * turn.sin(),
+                           base[..., 0] * turn.sin() + base[..., 1] * turn.cos()], -1).to(dtype)
+    # Exactly at the tolerance (and one step inside) against an axis-aligned line.
+    ends[2, 0] = torch.tensor([[offset, offset], [offset + 10.0, offset]], dtype=dtype)
+    u_line[2, 0] = torch.tensor([1.0, 0.0], dtype=dtype)
+    c = torch.tensor(math.cos(math.radians(angle_deg)), dtype=dtype)
+    for q, cos in enumerate((c, torch.nextafter(c, torch.zeros_like(c)))):
+        mid[2, q] = torch.tensor([offset + 5.0, offset + 0.5], dtype=dtype)
+        u_piece[2, q] = torch.stack([cos, torch.zeros_like(cos) + 0.1])
+    mid[0, 0, 0] = math.nan  # a non-finite piece counts nothing
+    compiled = piece_closeness(mid, u_piece, ends, u_line, valid, cfg, compiled=True)
+    expected = piece_closeness(mid, u_piece, ends, u_line, valid, cfg, compiled=False)
+    assert compiled.dtype == dtype and compiled.shape == (4, 200)
+    assert torch.equal(compiled, expected)
+    assert 0 < int((compiled > 0).sum()) < compiled.numel() - 200  # both outcomes, not only in patch 3
+    assert compiled[2, 0] > 0 and compiled[2, 1] == 0  # the angle boundary: inclusive
+    empty = mid[:, :0]
+    assert piece_closeness(empty, empty, ends, u_line, valid, cfg, compiled=True).shape == (4, 0)
+    no_lines = piece_closeness(mid, u_piece, ends[:, :0], u_line[:, :0], valid[:, :0], cfg, compiled=True)
+    assert torch.equal(no_lines, torch.zeros(4, 200, dtype=dtype))

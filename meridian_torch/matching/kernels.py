@@ -13,6 +13,8 @@ passes over large intermediates, not arithmetic, were the cost.
 - `round_particles`, `greedy_representatives`: the sampler's rounding of particles to sets and the
   greedy clustering of sets (`matching.hypotheses`), the same sets as torch's sort and sweeps.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
+- `near_line_closeness`: verification's line score, walking `near_pairs`' grid; bitwise the torch
+  expressions.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "greedy_representatives", "grown", "langevin_patches", "mix_words", "near_pairs", "round_particles", "uniform_words",
+    "greedy_representatives", "grown", "langevin_patches", "mix_words", "near_line_closeness", "near_pairs",
+    "round_particles", "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
@@ -193,49 +196,17 @@ def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: 
     """`verification.segments_near_points` on float64 arrays, one patch at a time."""
     n_patches, n_points = points.shape[0], points.shape[1]
     n_segments = ends.shape[1]
-    cell, spacing = 1.5 * radius, 0.5 * radius
     query = np.empty(1024, np.int64)
     segment = np.empty(1024, np.int64)
     n_out = 0
     for p in range(n_patches):
-        counts = np.zeros(n_segments, np.int64)
-        for m in range(n_segments):
-            if valid[p, m]:
-                length = np.hypot(ends[p, m, 1, 0] - ends[p, m, 0, 0], ends[p, m, 1, 1] - ends[p, m, 0, 1])
-                counts[m] = int(np.ceil(length / spacing)) + 1
-        n_samples = counts.sum()
-        if n_samples == 0:
+        grid, starts, cell_segments = _segment_grid(ends[p], valid[p], radius)
+        if len(cell_segments) == 0:
             continue
-        xy = np.empty((n_samples, 2))
-        owner = np.empty(n_samples, np.int64)
-        k = 0
-        for m in range(n_segments):
-            for step in range(counts[m]):
-                f = step / max(counts[m] - 1, 1)
-                for axis in range(2):
-                    a = ends[p, m, 0, axis]
-                    xy[k, axis] = a + f * (ends[p, m, 1, axis] - a)
-                owner[k] = m
-                k += 1
-        # The grid starts two cells below the lowest sample, so every neighbour cell is >= 0.
-        x0, y0 = xy[:, 0].min() - 2 * cell, xy[:, 1].min() - 2 * cell
-        cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
-        cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
-        width, height = cx.max() + 2, cy.max() + 2
-        n_cells = width * height
-        starts = np.zeros(n_cells + 1, np.int64)
-        _cell_segments(cx, cy, owner, width, starts[1:], starts, False)
-        starts = np.cumsum(starts)
-        cell_segments = np.empty(starts[-1], np.int64)
-        _cell_segments(cx, cy, owner, width, starts[:-1].copy(), cell_segments, True)
         for q in range(n_points):
-            x, y = points[p, q, 0], points[p, q, 1]
-            if not (np.isfinite(x) and np.isfinite(y)):
+            c = _grid_cell(grid, points[p, q, 0], points[p, q, 1])
+            if c < 0:
                 continue
-            i, j = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
-            if i < 0 or j < 0 or i >= width or j >= height:
-                continue
-            c = int(j) * width + int(i)
             need = n_out + starts[c + 1] - starts[c]
             if need > len(query):
                 capacity = max(2 * len(query), need)
@@ -246,6 +217,59 @@ def near_pairs(points: np.ndarray, ends: np.ndarray, valid: np.ndarray, radius: 
                 segment[n_out] = p * n_segments + cell_segments[e]
                 n_out += 1
     return query[:n_out].copy(), segment[:n_out].copy()
+
+
+@njit(cache=True, nogil=True)
+def _segment_grid(ends: np.ndarray, valid: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`near_pairs`' grid of one patch's segments ends (M, 2, 2) float64: (x0, y0, cell, width,
+    height) as floats, each cell's start in the segment list (n_cells + 1,) and the list (empty
+    without valid segments)."""
+    n_segments = ends.shape[0]
+    cell, spacing = 1.5 * radius, 0.5 * radius
+    counts = np.zeros(n_segments, np.int64)
+    for m in range(n_segments):
+        if valid[m]:
+            length = np.hypot(ends[m, 1, 0] - ends[m, 0, 0], ends[m, 1, 1] - ends[m, 0, 1])
+            counts[m] = int(np.ceil(length / spacing)) + 1
+    n_samples = counts.sum()
+    if n_samples == 0:
+        return np.zeros(5), np.zeros(1, np.int64), np.empty(0, np.int64)
+    xy = np.empty((n_samples, 2))
+    owner = np.empty(n_samples, np.int64)
+    k = 0
+    for m in range(n_segments):
+        for step in range(counts[m]):
+            f = step / max(counts[m] - 1, 1)
+            for axis in range(2):
+                a = ends[m, 0, axis]
+                xy[k, axis] = a + f * (ends[m, 1, axis] - a)
+            owner[k] = m
+            k += 1
+    # The grid starts two cells below the lowest sample, so every neighbour cell is >= 0.
+    x0, y0 = xy[:, 0].min() - 2 * cell, xy[:, 1].min() - 2 * cell
+    cx = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
+    cy = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
+    width, height = cx.max() + 2, cy.max() + 2
+    n_cells = width * height
+    starts = np.zeros(n_cells + 1, np.int64)
+    _cell_segments(cx, cy, owner, width, starts[1:], starts, False)
+    starts = np.cumsum(starts)
+    cell_segments = np.empty(starts[-1], np.int64)
+    _cell_segments(cx, cy, owner, width, starts[:-1].copy(), cell_segments, True)
+    return np.array([x0, y0, cell, width, height]), starts, cell_segments
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _grid_cell(grid: np.ndarray, x: float, y: float) -> int:
+    """The cell of `_segment_grid` (x0, y0, cell, width, height) holding (x, y); -1 outside or
+    not finite."""
+    x0, y0, cell, width, height = grid[0], grid[1], grid[2], grid[3], grid[4]
+    if not (np.isfinite(x) and np.isfinite(y)):
+        return -1
+    i, j = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
+    if i < 0 or j < 0 or i >= width or j >= height:
+        return -1
+    return int(j) * int(width) + int(i)
 
 
 @njit(cache=True, nogil=True)
@@ -355,3 +379,49 @@ def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
         flat_out[k] = np.float64(flat_in[k] >> _SHIFT_11) * _TWO_TO_MINUS_53
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def near_line_closeness(
+    points: np.ndarray,
+    directions: np.ndarray,
+    ends: np.ndarray,
+    segment_directions: np.ndarray,
+    valid: np.ndarray,
+    radius: float,
+    constants: np.ndarray,
+) -> np.ndarray:
+    """Verification's line score (`matching.verification.piece_closeness`) of points (P, Q, 2)
+    with unit directions (P, Q, 2) against their patch's valid segments ends (P, M, 2, 2) with
+    unit directions (P, M, 2): (P, Q) max of max(1 - d^2 / radius^2, 0), d the distance to a
+    segment with |direction · segment direction| >= cos_tol, over the segments `near_pairs`
+    pairs the point with (its grid, built from the same float64 values); 0 without one.
+    constants = (cos_tol, 1e-12, 0, 1, radius^2) in the points' dtype: each value is rounded as
+    torch's elementwise ops round it (the same operations in the same order, in that dtype), so
+    the result is bitwise theirs. Scoring while walking the grid saves writing and reading the
+    ~100k pairs of a chunk."""
+    cos_tol, floor, zero, one, radius2 = constants[0], constants[1], constants[2], constants[3], constants[4]
+    out = np.zeros(points.shape[:2], points.dtype)
+    for p in range(points.shape[0]):
+        grid, starts, cell_segments = _segment_grid(ends[p].astype(np.float64), valid[p], radius)
+        if len(cell_segments) == 0:
+            continue
+        for q in range(points.shape[1]):
+            px, py = points[p, q, 0], points[p, q, 1]
+            c = _grid_cell(grid, np.float64(px), np.float64(py))
+            if c < 0:
+                continue
+            ux, uy = directions[p, q, 0], directions[p, q, 1]
+            best = zero
+            for e in range(starts[c], starts[c + 1]):
+                m = cell_segments[e]
+                if abs(ux * segment_directions[p, m, 0] + uy * segment_directions[p, m, 1]) < cos_tol:
+                    continue
+                ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
+                abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
+                t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, floor)
+                t = min(max(t, zero), one)
+                ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
+                best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
+            out[p, q] = best
+    return out
