@@ -253,14 +253,22 @@ def _min_eigenvalue_2x2(A: torch.Tensor) -> torch.Tensor:
     return half_trace - torch.sqrt(half_diff**2 + off**2)
 
 
-def _angle_cost(coef: torch.Tensor, theta: torch.Tensor, order: int) -> torch.Tensor:
+def _angle_terms(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """cos θ, sin θ, cos 2θ, sin 2θ: computed once for f and its derivatives at the same θ."""
+    return torch.cos(theta), torch.sin(theta), torch.cos(2 * theta), torch.sin(2 * theta)
+
+
+def _angle_cost(
+    coef: torch.Tensor, terms: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], order: int
+) -> torch.Tensor:
     """Order-th derivative of f(θ) - a0 = a_c cos 2θ + a_s sin 2θ + b_c cos θ + b_s sin θ.
 
-    coef is (B, 4) = (a_c, a_s, b_c, b_s); theta is (B, n). The constant a0 is left out because
-    only differences and derivatives of f are needed.
+    coef is (B, 4) = (a_c, a_s, b_c, b_s); terms are `_angle_terms` of θ, (B, n) or (n,) (the
+    same angles for every set). The constant a0 is left out because only differences and
+    derivatives of f are needed.
     """
     a_c, a_s, b_c, b_s = (coef[:, i, None] for i in range(4))
-    c1, s1, c2, s2 = torch.cos(theta), torch.sin(theta), torch.cos(2 * theta), torch.sin(2 * theta)
+    c1, s1, c2, s2 = terms
     if order == 0:
         return a_c * c2 + a_s * s2 + b_c * c1 + b_s * s1
     if order == 1:
@@ -278,14 +286,15 @@ def _minimise_angle(
     brackets are refined by Newton steps clamped to their bracket. Returns θ (B,) and the cost
     gap to the other local minimum (inf if there is none).
     """
-    B, dtype, device = M.shape[0], M.dtype, M.device
+    dtype, device = M.dtype, M.device
     # u^T M u = (m00 + m11)/2 + (m00 - m11)/2 cos 2θ + m01 sin 2θ; the constant part is dropped.
     a_c, a_s = 0.5 * (M[:, 0, 0] - M[:, 1, 1]), 0.5 * (M[:, 0, 1] + M[:, 1, 0])
     coef = torch.stack([a_c, a_s, -2 * g_red[:, 0], -2 * g_red[:, 1]], -1)
     n = cfg.n_angle_samples
     step = 2 * math.pi / n
     grid = -math.pi + step * torch.arange(n, dtype=dtype, device=device)
-    f_grid = _angle_cost(coef, grid.expand(B, n), 0)
+    # The grid's sines and cosines once, not per set (cos and sin round each element alike).
+    f_grid = _angle_cost(coef, _angle_terms(grid), 0)
     # Strict on one side so that two exactly equal neighbours count as one minimum.
     is_min = (f_grid < f_grid.roll(1, -1)) & (f_grid <= f_grid.roll(-1, -1))
     # The global grid minimum is a local one (unless f is flat); ranking by masked cost puts it first.
@@ -296,12 +305,13 @@ def _minimise_angle(
     lo, hi = start - step, start + step
     theta = start
     for _ in range(cfg.newton_iterations):
-        d1 = _angle_cost(coef, theta, 1)
-        d2 = _angle_cost(coef, theta, 2)
+        terms = _angle_terms(theta)
+        d1 = _angle_cost(coef, terms, 1)
+        d2 = _angle_cost(coef, terms, 2)
         # Where f is not convex a Newton step would head for a maximum: walk downhill instead.
         newton = -d1 / d2.clamp_min(torch.finfo(dtype).tiny)
         theta = torch.clamp(theta + torch.where(d2 > 0, newton, -torch.sign(d1) * step), lo, hi)
-    f_ref = _angle_cost(coef, theta, 0)
+    f_ref = _angle_cost(coef, _angle_terms(theta), 0)
     # Without a second grid minimum the second bracket is an arbitrary grid point: ignore it.
     first_best = (f_ref[:, 0] <= f_ref[:, 1]) | ~has_second
     best = torch.where(first_best, theta[:, 0], theta[:, 1])
