@@ -19,7 +19,10 @@ from meridian_torch.matching.affinity import (
     unary_scores,
 )
 from meridian_torch.matching.affinity.blocks import _entries
+from meridian_torch.matching.affinity.compiled import _compiled_line_pair_table
 from meridian_torch.matching.affinity.gather import _gather
+from meridian_torch.matching.affinity.lines import _closest_params, _line_params
+from meridian_torch.matching.affinity.scores import _line_pair_table
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
@@ -430,6 +433,70 @@ def test_compiled_entries_equal_torch_path(seed: int, dtype: torch.dtype) -> Non
                 # On the CPU the public entry point takes the compiled path.
                 default = affinity_entries(g, batch, assoc, cfg, rotation_prior=prior)
                 assert torch.equal(default.index, index_c) and torch.equal(default.value, value_c)
+
+
+def same_numbers(x: torch.Tensor, y: torch.Tensor) -> bool:
+    """Equal shapes, dtypes and values, NaN where NaN (0.0 equals -0.0)."""
+    return x.shape == y.shape and x.dtype == y.dtype and torch.equal(x.isnan(), y.isnan()) and torch.equal(
+        x.nan_to_num(nan=0.0), y.nan_to_num(nan=0.0)
+    )
+
+
+def awkward_lines(gen: torch.Generator, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """(2, n, 2, 2) endpoints and (2, n) kinds of random lines of every kind with the pairs the
+    closest points branch on: exactly parallel and antiparallel copies, lines that cross,
+    collinear overlapping ones, shared endpoints, zero-length ones and one NaN line."""
+    ends = torch.rand(2, n, 2, 2, generator=gen, dtype=torch.float64) * 40 - 20
+    ends[:, 1:8] = ends[:, :7] + torch.tensor([3.0, -1.0], dtype=torch.float64)  # parallel
+    ends[:, 8:12] = ends[:, 1:5].flip(2)  # antiparallel copies
+    ends[:, 12:16, 0] = ends[:, 2:6, 1]  # shared endpoints
+    ends[:, 16:20] = ends[:, 2:6, :1] + (ends[:, 2:6, 1:] - ends[:, 2:6, :1]) * torch.tensor([[0.5], [2.0]], dtype=torch.float64)
+    ends[:, 20:23, 1] = ends[:, 20:23, 0]  # zero length
+    ends[1, 23] = math.nan
+    kinds = torch.randint(0, 3, (2, n), generator=gen)
+    kinds[0, :4] = SEG
+    return ends.to(dtype), kinds
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_line_pair_table_equals_torch(dtype: torch.dtype) -> None:
+    """The numba line-pair table gives the torch path's numbers, in both modes, with and without
+    the gap vector, for batches of lines, a flat set of lines and no lines at all."""
+    gen = torch.Generator().manual_seed(5)
+    ends, kinds = awkward_lines(gen, 60, dtype)
+    for batch in ((ends, kinds), (ends[0], kinds[0]), (ends[:, :0], kinds[:, :0])):
+        lines = _line_params(*batch)
+        for with_vectors in (False, True):
+            for parallel_below in (None, math.radians(10.0)):
+                expected = _line_pair_table(lines.map_axis(-1), lines.map_axis(-2), with_vectors, parallel_below)
+                table = _compiled_line_pair_table(lines, with_vectors, parallel_below)
+                assert same_numbers(table, expected)
+    # The case reaches every branch: lines that meet, endpoint candidates, parallel with an infinite line.
+    lines = _line_params(ends, kinds)
+    l_i, l_j = lines.map_axis(-1), lines.map_axis(-2)
+    meet = _closest_params(l_i, l_j)[2]
+    parallel = (l_i.dx * l_j.dx + l_i.dy * l_j.dy).abs() >= math.cos(math.radians(0.1))
+    assert meet.any() and (~meet & ~parallel).any() and (parallel & ~meet & (l_i.lo.isinf() | l_j.lo.isinf())).any()
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_compiled_gather_equals_torch(seed: int) -> None:
+    """`_gather` builds the same tables with the compiled line pairs as with the torch ops."""
+    gen = torch.Generator().manual_seed(20 + seed)
+    ground = random_scene(gen, 12, 16, roads=seed == 2)
+    batch = stack_primitive_sets([noisy_patch(ground, gen, 12, 16, 4), noisy_patch(ground, gen, 8, 10, 6)])
+    assoc = putative_associations(ground, batch, k_prim=3, direction="union", min_line_length_m=2.0)
+    prior = torch.tensor([0.3, 2.0], dtype=torch.float64)
+    for cfg in (AffinityConfig(parallel_line_pairs="reject"), AffinityConfig(parallel_line_pairs="separation")):
+        for yaw in (None, prior):
+            expected = _gather(ground, batch, assoc, cfg, yaw, compiled=False)
+            gat = _gather(ground, batch, assoc, cfg, yaw, compiled=True)
+            for name in expected.__dataclass_fields__:
+                x, y = getattr(gat, name), getattr(expected, name)
+                if isinstance(x, torch.Tensor):
+                    assert same_numbers(x, y), name
+                elif name != "cos_sin":
+                    assert x == y, name
 
 
 def test_closest_points_equal_loop() -> None:

@@ -10,8 +10,13 @@ import torch
 
 from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.affinity.compiled import _compiled_entries
-from meridian_torch.matching.affinity.gather import _GATE_SLACK, _Gathered, _rotate
-from meridian_torch.matching.affinity.scores import _line_line_score, _point_line_score, _point_pair_score
+from meridian_torch.matching.affinity.gather import _Gathered, _rotate
+from meridian_torch.matching.affinity.scores import (
+    _GATE_SLACK,
+    _line_line_score,
+    _point_line_score,
+    _point_pair_score,
+)
 
 
 def _take(table: torch.Tensor, key: torch.Tensor, cos_sin: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:

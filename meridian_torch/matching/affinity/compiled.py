@@ -19,15 +19,20 @@ order are identical. Float64 inputs run the same code in float64.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
 from numba import njit, uint64
 
 from meridian_torch.config.matching import AffinityConfig
-from meridian_torch.matching.affinity.gather import _GATE_SLACK, _Gathered
+from meridian_torch.geometry.se2 import line_angle_between
+from meridian_torch.matching.affinity.lines import NEARBY_EPS_M, PARALLEL_EPS_RAD, _Lines
+from meridian_torch.matching.affinity.scores import _GATE_SLACK
 from meridian_torch.matching.kernels import grown
+
+if TYPE_CHECKING:  # gather builds its tables with this module
+    from meridian_torch.matching.affinity.gather import _Gathered
 
 _KINDS = ("pp", "pl", "ll")  # span kinds; their index is the kernel's kind code
 _PP, _PL, _LL = range(3)
@@ -310,3 +315,131 @@ def _span_entries(spans, arr, k, rotated, separation, lever_arm):
                     value[n] = product**k.third
                     n += 1
     return index[: 3 * n].reshape(n, 3), value[:n]
+
+
+# ------------------------------------------------------------------------------------------
+# Line-pair tables (`scores._line_pair_table`)
+# ------------------------------------------------------------------------------------------
+
+
+class _LineConstants(NamedTuple):
+    """The scalars of `lines._closest_params` and `scores._line_pair_table` in the lines' dtype."""
+
+    zero: float
+    one: float
+    half: float
+    inf: float
+    nearby: float  # NEARBY_EPS_M
+    cos_parallel: float  # cos(PARALLEL_EPS_RAD)
+    parallel_below: float  # the separation mode's angle (unused without it)
+
+
+def _compiled_line_pair_table(lines: _Lines, with_vectors: bool, parallel_below: float | None) -> torch.Tensor:
+    """`scores._line_pair_table(lines.map_axis(-1), lines.map_axis(-2), ...)` of the lines (..., U)
+    on the CPU: (F, ..., U, U), the same numbers (up to the sign of zeros in the gap vector).
+
+    The angle, its sine and the gap length stay torch ops on tensors of the torch path's shapes
+    (SLEEF's atan2, sin and hypot, which libm's do not match bit for bit, and whose last
+    elements of a tensor take the scalar code); one compiled pass does the rest pair by pair,
+    which in torch is ~100 ops on (..., U, U) tensors (the closest points' candidates)."""
+    angle = line_angle_between(lines.map_axis(-1).angle(), lines.map_axis(-2).angle())
+    n_rows, n = math.prod(angle.shape[:-2]), angle.shape[-1]
+    table = angle.new_empty(5, *angle.shape)  # rows 3, 4 (the gap vector) also feed the gap length
+    table[0] = angle
+    separation = parallel_below is not None
+    sin_angle = torch.sin(angle) if separation else angle
+    dtype = angle.numpy().dtype
+    constants = _LineConstants(*(dtype.type(v) for v in (
+        0.0, 1.0, 0.5, math.inf, NEARBY_EPS_M, math.cos(PARALLEL_EPS_RAD), parallel_below if separation else 0.0)))
+
+    def rows(x: torch.Tensor) -> np.ndarray:
+        return x.reshape(n_rows, n).contiguous().numpy()
+
+    _line_pair_fields(
+        rows(lines.ox), rows(lines.oy), rows(lines.dx), rows(lines.dy), rows(lines.lo), rows(lines.hi), rows(lines.tref),
+        sin_angle.reshape(n_rows, n, n).numpy(), angle.reshape(n_rows, n, n).numpy(), constants, separation,
+        table.view(5, n_rows, n, n).numpy(),
+    )
+    torch.hypot(table[3], table[4], out=table[1])
+    return table if with_vectors else table[:3]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clamped(t, lo, hi):
+    """`lines._clamp` of one value: torch.minimum(torch.maximum(t, lo), hi), NaN propagating."""
+    t = t if t > lo or t != t else lo
+    return t if t < hi or t != t else hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _closest_params(line_1, line_2, k):
+    """`lines._closest_params` of one pair of lines (ox, oy, dx, dy, lo, hi, tref): s1, s2, meet."""
+    ox1, oy1, dx1, dy1, lo1, hi1, tref1 = line_1
+    ox2, oy2, dx2, dy2, lo2, hi2, tref2 = line_2
+    wx, wy = ox2 - ox1, oy2 - oy1
+    c12 = dx1 * dx2 + dy1 * dy2
+    x12 = dx1 * dy2 - dy1 * dx2
+    w_d1 = wx * dx1 + wy * dy1
+    w_d2 = wx * dx2 + wy * dy2
+    w_x_d1 = wx * dy1 - wy * dx1
+    w_x_d2 = wx * dy2 - wy * dx2
+    parallel = abs(c12) >= k.cos_parallel
+    safe = k.one if parallel else x12
+    t1, t2 = w_x_d2 / safe, w_x_d1 / safe
+    if not parallel and lo1 - k.nearby <= t1 <= hi1 + k.nearby and lo2 - k.nearby <= t2 <= hi2 + k.nearby:
+        return t1, t2, True
+    # The endpoint candidates in the torch order (a tie keeps the earlier one); non-finite ends
+    # are skipped (their distance is inf there, which never wins nor changes the minimum).
+    best_d, s1, s2 = k.inf, t1, t2
+    for c in range(4):
+        first = c < 2
+        e = (lo1 if c == 0 else hi1) if first else (lo2 if c == 2 else hi2)
+        if not math.isfinite(e):
+            continue
+        # An end at parameter e of line 1 relative to o2: along -w.d2 + e c12, across w x d2 - e x12;
+        # an end of line 2 relative to o1: along w.d1 + e c12, across w x d1 - e x12.
+        if first:
+            along, across = -w_d2 + e * c12, w_x_d2 - e * x12
+            near = _clamped(along, lo2, hi2)
+        else:
+            along, across = w_d1 + e * c12, w_x_d1 - e * x12
+            near = _clamped(along, lo1, hi1)
+        dist = across * across + (along - near) * (along - near)
+        if dist < best_d:
+            s1, s2 = (e, near) if first else (near, e)
+        best_d = _minimum(best_d, dist)
+    # Parallel with an infinite line: the gap is the same everywhere, anchor it at the reference.
+    if parallel and math.isinf(lo1):
+        s1, s2 = tref1, _clamped(-w_d2 + tref1 * c12, lo2, hi2)
+    elif parallel and math.isinf(lo2):
+        s1, s2 = _clamped(w_d1 + tref2 * c12, lo1, hi1), tref2
+    return s1, s2, False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _line_pair_fields(ox, oy, dx, dy, lo, hi, tref, sin_angle, angle, k, separation, out):
+    """Lever (out[2]) and gap vector (out[3], out[4]) of every pair (i, j) of the lines (B, U) of
+    each row b, as `scores._line_pair_table`; angle, sin_angle (B, U, U) from torch (sin_angle
+    read only in 'separation' mode)."""
+    n_rows, n = ox.shape
+    for b in range(n_rows):
+        for i in range(n):
+            line_i = (ox[b, i], oy[b, i], dx[b, i], dy[b, i], lo[b, i], hi[b, i], tref[b, i])
+            ox_i, oy_i, dx_i, dy_i, tref_i = ox[b, i], oy[b, i], dx[b, i], dy[b, i], tref[b, i]
+            for j in range(n):
+                ox_j, oy_j, dx_j, dy_j, tref_j = ox[b, j], oy[b, j], dx[b, j], dy[b, j], tref[b, j]
+                s_i, s_j, meet = _closest_params(line_i, (ox_j, oy_j, dx_j, dy_j, lo[b, j], hi[b, j], tref_j), k)
+                gx, gy = k.zero, k.zero
+                if not meet:
+                    gx = ox_i + s_i * dx_i - ox_j - s_j * dx_j
+                    gy = oy_i + s_i * dy_i - oy_j - s_j * dy_j
+                lever = abs(tref_i - s_i) + abs(tref_j - s_j)
+                if separation and angle[b, i, j] < k.parallel_below:
+                    # Near-parallel: the separation of the reference points across both lines.
+                    wx = ox_j + tref_j * dx_j - ox_i - tref_i * dx_i
+                    wy = oy_j + tref_j * dy_j - oy_i - tref_i * dy_i
+                    w_di, w_dj = wx * dx_i + wy * dy_i, wx * dx_j + wy * dy_j
+                    gx = k.half * (w_di * dx_i + w_dj * dx_j) - wx
+                    gy = k.half * (w_di * dy_i + w_dj * dy_j) - wy
+                    lever = sin_angle[b, i, j] * k.half * (abs(w_di) + abs(w_dj))
+                out[2, b, i, j], out[3, b, i, j], out[4, b, i, j] = lever, gx, gy

@@ -11,8 +11,10 @@ import torch
 
 from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.geometry.se2 import line_angle_between, wrap_line_angle
+from meridian_torch.matching.affinity.compiled import _compiled_line_pair_table
 from meridian_torch.matching.affinity.lines import _line_params
 from meridian_torch.matching.affinity.scores import (
+    _GATE_SLACK,
     _line_pair_table,
     _point_line_table,
     kernel,
@@ -66,9 +68,6 @@ def _rotate(cos: torch.Tensor, sin: torch.Tensor, x: torch.Tensor, y: torch.Tens
     return cos * x - sin * y, sin * x + cos * y
 
 
-# Gates compare rotation-invariant table values that the exact scores recompute from rotated
-# or differently rounded inputs; this slack (metres or radians) keeps the gate a strict superset.
-_GATE_SLACK = 1e-3
 # Gate value of near-parallel line pairs = offset + scaled separation (see `_gate_tables`);
 # float32 still resolves the slack at this magnitude for separations up to a few km.
 _PARALLEL_GATE_OFFSET = 1e3
@@ -143,7 +142,10 @@ def _gather(
     assoc: Associations,
     cfg: AffinityConfig,
     rotation_prior: torch.Tensor | None,
+    compiled: bool | None = None,
 ) -> _Gathered:
+    """The associations' geometry and tables; compiled: build the line-pair tables with the numba
+    pass (`compiled`; default: for CPU tensors) instead of the torch ops (the same numbers)."""
     device, dtype = aerial.points_xy.device, aerial.points_xy.dtype
     ground = ground.to(device=device, dtype=dtype)
     n_patches, mp = assoc.num_patches, assoc.n_point_assoc
@@ -171,8 +173,14 @@ def _gather(
     a_pl = _point_line_table(a_xy[..., :, None, 0], a_xy[..., :, None, 1], a_lines.map_axis(-2), with_vectors)
     g_pl = _point_line_table(g_xy[..., :, None, 0], g_xy[..., :, None, 1], g_lines.map_axis(-2), with_vectors)
     parallel_below = math.radians(cfg.min_line_angle_deg) if cfg.parallel_line_pairs == "separation" else None
-    a_ll = _line_pair_table(a_lines.map_axis(-1), a_lines.map_axis(-2), with_vectors, parallel_below)
-    g_ll = _line_pair_table(g_lines.map_axis(-1), g_lines.map_axis(-2), with_vectors, parallel_below)
+    if compiled is None:
+        compiled = device.type == "cpu"
+    if compiled:
+        a_ll = _compiled_line_pair_table(a_lines, with_vectors, parallel_below)
+        g_ll = _compiled_line_pair_table(g_lines, with_vectors, parallel_below)
+    else:
+        a_ll = _line_pair_table(a_lines.map_axis(-1), a_lines.map_axis(-2), with_vectors, parallel_below)
+        g_ll = _line_pair_table(g_lines.map_axis(-1), g_lines.map_axis(-2), with_vectors, parallel_below)
     gates = _gate_tables(a_xy, g_xy, a_pl, g_pl, a_ll, g_ll, cfg)
 
     g_points = g_xy[g_pt]

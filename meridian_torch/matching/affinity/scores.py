@@ -21,6 +21,10 @@ from meridian_torch.matching.affinity.lines import _clamp, _closest_params, _Lin
 
 __all__ = ["kernel"]
 
+# Gates compare rotation-invariant table values that the exact scores recompute from rotated
+# or differently rounded inputs; this slack (metres or radians) keeps the gate a strict superset.
+_GATE_SLACK = 1e-3
+
 
 def kernel(c: torch.Tensor, sigma: torch.Tensor | float, eps: torch.Tensor | float) -> torch.Tensor:
     """f(c; sigma, eps) = exp(-c^2 / (2 sigma^2)) if c <= eps else 0 (c = eps is accepted).
