@@ -215,6 +215,56 @@ def test_k_larger_than_candidates_and_empty_types() -> None:
     assert assoc.valid.sum(1).tolist() == [3 * 2, 3 * 5]
 
 
+def mask_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k: int, direction: str):
+    """`_chunk_pairs` by its plain definition: the picks as a (P, G, A) mask, then its non-zeros."""
+    n_patches, n_aerial = aerial_ok.shape
+    n_ground = ground_ok.shape[0]
+    cosine = torch.einsum(
+        "gd,pad->pga",
+        torch.nn.functional.normalize(ground_desc.double(), dim=-1),
+        torch.nn.functional.normalize(aerial_desc.double(), dim=-1),
+    )
+    usable = ground_ok[None, :, None] & aerial_ok[:, None, :]
+    ranked = cosine.float().double() + associations.tie_break_jitter(n_ground, n_aerial, cosine.device)
+    ranked.masked_fill_(~usable, float("-inf"))
+    selected = torch.zeros_like(usable)
+    if min(k, n_aerial) > 0:
+        selected.scatter_(2, ranked.topk(min(k, n_aerial), dim=2).indices, True)
+    if direction == "union" and min(k, n_ground) > 0:
+        selected.scatter_(1, ranked.topk(min(k, n_ground), dim=1).indices, True)
+    selected &= usable
+    flat = selected.reshape(n_patches, n_ground * n_aerial)
+    width = int(flat.sum(1).max()) if flat.numel() else 0
+    pairs = torch.full((n_patches, width, 2), -1, dtype=torch.int64)
+    cos = torch.zeros(n_patches, width, dtype=ground_desc.dtype)
+    for p in range(n_patches):
+        index = flat[p].nonzero()[:, 0]
+        pairs[p, : len(index)] = torch.stack([index // n_aerial, index % n_aerial], 1)
+        cos[p, : len(index)] = cosine.reshape(n_patches, n_ground * n_aerial)[p, index].to(ground_desc.dtype)
+    return pairs, pairs[..., 0] >= 0, cos
+
+
+@pytest.mark.parametrize("direction", ["ground_to_aerial", "union"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_chunk_pairs_equal_mask_definition(direction: str, dtype: torch.dtype) -> None:
+    """The sorted picks give the mask's pairs and cosines exactly: with tied descriptors, unusable
+    primitives on both sides, k above the candidates, and no ground or aerial primitives."""
+    gen = torch.Generator().manual_seed(11)
+    for n_ground, n_patches, n_aerial, k in ((9, 4, 30, 3), (9, 3, 5, 7), (0, 2, 6, 3), (5, 2, 0, 3), (4, 0, 3, 2)):
+        ground_desc = torch.randn(n_ground, 6, generator=gen).to(dtype)
+        aerial_desc = torch.randn(n_patches, n_aerial, 6, generator=gen).to(dtype)
+        if n_ground > 2 and n_aerial > 4:  # exact ties within and across the sides
+            ground_desc[1] = ground_desc[0]
+            aerial_desc[:, 1:4] = aerial_desc[:, :1]
+            aerial_desc[:, 4] = ground_desc[2] * 3
+        ground_ok = torch.rand(n_ground, generator=gen) > 0.2
+        aerial_ok = torch.rand(n_patches, n_aerial, generator=gen) > 0.3
+        got = associations._chunk_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
+        expected = mask_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
+        for x, y in zip(got, expected):
+            assert x.dtype == y.dtype and torch.equal(x, y)
+
+
 def test_rejects_bad_arguments() -> None:
     gen = torch.Generator().manual_seed(0)
     s = random_set(2, 2, 4, gen)

@@ -151,37 +151,40 @@ def _chunk_pairs(
     n_patches, n_aerial = aerial_ok.shape
     n_ground = ground_ok.shape[0]
     # A matrix product rounds equal columns differently by position and batch shape: computed in
-    # float64 and rounded to float32, equal descriptors tie exactly, and the jitter orders them.
+    # float64 and rounded to float32, equal descriptors tie exactly, and the jitter orders them
+    # (float32 + float64 adds the exact float32 value).
     cosine = torch.einsum(
         "gd,pad->pga", F.normalize(ground_desc.double(), dim=-1), F.normalize(aerial_desc.double(), dim=-1)
     )
-    usable = ground_ok[None, :, None] & aerial_ok[:, None, :]
-    ranked = cosine.float().double() + tie_break_jitter(n_ground, n_aerial, cosine.device)
-    ranked.masked_fill_(~usable, float("-inf"))
-    cosine = cosine.to(ground_desc.dtype)
-    # k is clipped to the size of the other side; picks that land on masked entries are dropped below.
-    selected = torch.zeros_like(usable)
+    ranked = cosine.float() + tie_break_jitter(n_ground, n_aerial, cosine.device)
+    ranked.masked_fill_(~ground_ok[None, :, None], float("-inf")).masked_fill_(~aerial_ok[:, None, :], float("-inf"))
+    # The picks as flat (ground-major) indices g * A + a; k is clipped to the size of the other
+    # side, and picks that land on unusable pairs are dropped below.
+    device, n_pairs = cosine.device, n_ground * n_aerial
+    picks = [torch.zeros(n_patches, 0, dtype=torch.int64, device=device)]  # none when k clips to 0
     k_aerial = min(k, n_aerial)
     if k_aerial > 0:
-        selected.scatter_(2, ranked.topk(k_aerial, dim=2).indices, True)
+        top = ranked.topk(k_aerial, dim=2).indices
+        picks.append((top + n_aerial * torch.arange(n_ground, device=device)[:, None]).flatten(1))
     k_ground = min(k, n_ground)
-    if direction == "union" and k_ground > 0:
-        selected.scatter_(1, ranked.topk(k_ground, dim=1).indices, True)
-    selected &= usable
-
-    flat = selected.reshape(n_patches, n_ground * n_aerial)
-    counts = flat.sum(dim=1)
-    width = int(counts.max()) if flat.numel() > 0 else 0
-    # Each patch's selected pairs first, in ascending flat (= ground-major) order: one nonzero()
-    # over all patches (row-major) and each pair's rank within its patch.
-    patch, flat_index = torch.nonzero(flat, as_tuple=True)
-    rank = torch.arange(len(patch), device=flat.device) - (torch.cumsum(counts, 0) - counts)[patch]
-    order = torch.zeros(n_patches, width, dtype=torch.int64, device=flat.device)
-    order[patch, rank] = flat_index
+    union = direction == "union" and k_ground > 0
+    if union:
+        top = ranked.topk(k_ground, dim=1).indices
+        picks.append((top * n_aerial + torch.arange(n_aerial, device=device)).flatten(1))
+    flat = torch.cat(picks, dim=1)
+    usable = ground_ok[flat // max(n_aerial, 1)] & aerial_ok.gather(1, flat % max(n_aerial, 1))
+    # Each patch's selected pairs first, in ascending flat order, then the rest (as n_pairs).
+    flat = flat.masked_fill(~usable, n_pairs).sort(dim=1).values
+    if union:  # a pair picked from both sides once
+        flat[:, 1:].masked_fill_(flat[:, 1:] == flat[:, :-1], n_pairs)
+        flat = flat.sort(dim=1).values
+    counts = (flat < n_pairs).sum(dim=1)
+    width = int(counts.max()) if counts.numel() > 0 else 0
     valid = torch.arange(width, device=flat.device)[None, :] < counts[:, None]
+    order = flat[:, :width].masked_fill(~valid, 0)
     pairs = torch.stack([order // max(n_aerial, 1), order % max(n_aerial, 1)], dim=-1)
     pairs = pairs.masked_fill(~valid[..., None], -1)
-    cos = cosine.reshape(n_patches, -1).gather(1, order).masked_fill(~valid, 0.0)
+    cos = cosine.reshape(n_patches, n_pairs).gather(1, order).to(ground_desc.dtype).masked_fill(~valid, 0.0)
     return pairs, valid, cos
 
 
