@@ -20,9 +20,9 @@ from meridian_torch.matching.affinity import (
 )
 from meridian_torch.matching.affinity.blocks import _entries
 from meridian_torch.matching.affinity.compiled import _compiled_line_pair_table
-from meridian_torch.matching.affinity.gather import _gather
+from meridian_torch.matching.affinity.gather import _PARALLEL_GATE_OFFSET, _gate_tables, _gather
 from meridian_torch.matching.affinity.lines import _closest_params, _line_params
-from meridian_torch.matching.affinity.scores import _line_pair_table
+from meridian_torch.matching.affinity.scores import _GATE_SLACK, _line_pair_table
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.types import LineKind, PrimitiveSet, stack_primitive_sets
 
@@ -497,6 +497,48 @@ def test_compiled_gather_equals_torch(seed: int) -> None:
                     assert same_numbers(x, y), name
                 elif name != "cos_sin":
                     assert x == y, name
+
+
+def eye_mask_gates(a_xy, g_xy, a_pl, g_pl, a_ll, g_ll, cfg: AffinityConfig) -> tuple[torch.Tensor, ...]:
+    """`_gate_tables` as first written: self pairs by an identity mask, out-of-place ops."""
+    def same_type(value, minimum):
+        self_pair = torch.eye(value.shape[-1], dtype=torch.bool)
+        return value.masked_fill((value < minimum) | self_pair, float("nan")).flatten()
+
+    def distances(xy):
+        return torch.hypot(xy[..., :, None, 0] - xy[..., None, :, 0], xy[..., :, None, 1] - xy[..., None, :, 1])
+
+    def line_pairs(ll):
+        min_angle = math.radians(cfg.min_line_angle_deg)
+        if cfg.parallel_line_pairs == "reject":
+            return same_type(ll[0], min_angle - _GATE_SLACK)
+        scale = math.radians(cfg.epsilon_theta_deg) / cfg.epsilon_t_m
+        too_close = ll[1] < cfg.min_point_separation_m - _GATE_SLACK
+        parallel = torch.where(too_close, float("nan"), _PARALLEL_GATE_OFFSET + scale * ll[1])
+        return same_type(torch.where(ll[0] < min_angle, parallel, ll[0]), float("-inf"))
+
+    slack = cfg.min_point_separation_m - _GATE_SLACK
+    return (same_type(distances(a_xy), slack), same_type(distances(g_xy), slack), torch.hypot(a_pl[0], a_pl[1]).flatten(),
+            torch.hypot(g_pl[0], g_pl[1]).flatten(), line_pairs(a_ll), line_pairs(g_ll))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gate_tables_equal_eye_mask_definition(dtype: torch.dtype) -> None:
+    """The gates (diagonal filled in place) equal the identity-mask definition, NaN tables included,
+    and leave the tables untouched."""
+    gen = torch.Generator().manual_seed(8)
+    a_xy, g_xy = torch.rand(3, 7, 2, generator=gen, dtype=dtype) * 10, torch.rand(5, 2, generator=gen, dtype=dtype) * 10
+    a_pl, g_pl = torch.randn(3, 3, 7, 6, generator=gen, dtype=dtype), torch.randn(3, 5, 4, generator=gen, dtype=dtype)
+    a_ll = torch.rand(3, 3, 6, 6, generator=gen, dtype=dtype) * torch.tensor([0.5, 8.0, 1.0], dtype=dtype)[:, None, None, None]
+    g_ll = torch.rand(3, 4, 4, generator=gen, dtype=dtype) * torch.tensor([0.5, 8.0, 1.0], dtype=dtype)[:, None, None]
+    a_ll[:, 0, 1, 2] = math.nan
+    tables = (a_xy, g_xy, a_pl, g_pl, a_ll, g_ll)
+    copies = [t.clone() for t in tables]
+    for mode in ("reject", "separation"):
+        cfg = AffinityConfig(parallel_line_pairs=mode)
+        for got, expected in zip(_gate_tables(*tables, cfg), eye_mask_gates(*tables, cfg)):
+            assert same_numbers(got, expected)
+    assert all(same_numbers(t, c) for t, c in zip(tables, copies))
 
 
 def test_closest_points_equal_loop() -> None:

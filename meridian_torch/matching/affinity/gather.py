@@ -86,12 +86,14 @@ def _gate_tables(
     their separation instead, see `line_pairs`). An association pair can score non-zero only
     if its aerial and ground values differ by at most eps_t (eps_theta for lines).
     """
-    def same_type(value: torch.Tensor, minimum: float) -> torch.Tensor:
+    def without_self_pairs(value: torch.Tensor) -> torch.Tensor:
         # NaN fails every comparison. The diagonal (a primitive with itself, i.e. two
-        # associations sharing it) is NaN too, so the gate also enforces one-to-one.
-        n = value.shape[-1]
-        self_pair = torch.eye(n, dtype=torch.bool, device=value.device)
-        return value.masked_fill((value < minimum) | self_pair, float("nan")).flatten()
+        # associations sharing it) is NaN, so the gate also enforces one-to-one. (value is new.)
+        value.diagonal(dim1=-2, dim2=-1).fill_(float("nan"))
+        return value.flatten()
+
+    def same_type(value: torch.Tensor, minimum: float) -> torch.Tensor:
+        return without_self_pairs(value.masked_fill(value < minimum, float("nan")))
 
     def distances(xy: torch.Tensor) -> torch.Tensor:
         return torch.hypot(xy[..., :, None, 0] - xy[..., None, :, 0], xy[..., :, None, 1] - xy[..., None, :, 1])
@@ -104,8 +106,8 @@ def _gate_tables(
         # far above every angle so that pairs parallel in one map only fail the gate too.
         scale = math.radians(cfg.epsilon_theta_deg) / cfg.epsilon_t_m
         too_close = ll[1] < cfg.min_point_separation_m - _GATE_SLACK
-        parallel = torch.where(too_close, float("nan"), _PARALLEL_GATE_OFFSET + scale * ll[1])
-        return same_type(torch.where(ll[0] < min_angle, parallel, ll[0]), float("-inf"))
+        parallel = ll[1].mul(scale).add_(_PARALLEL_GATE_OFFSET).masked_fill_(too_close, float("nan"))
+        return without_self_pairs(torch.where(ll[0] < min_angle, parallel, ll[0]))
 
     # Point-line pairs never share a primitive (points and lines are indexed apart).
     return (
