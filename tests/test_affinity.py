@@ -9,6 +9,7 @@ import torch
 
 from meridian_torch.config.matching import AffinityConfig
 from meridian_torch.matching.affinity import (
+    AffinityEntries,
     affinity,
     affinity_entries,
     affinity_matrix,
@@ -539,6 +540,29 @@ def test_gate_tables_equal_eye_mask_definition(dtype: torch.dtype) -> None:
         for got, expected in zip(_gate_tables(*tables, cfg), eye_mask_gates(*tables, cfg)):
             assert same_numbers(got, expected)
     assert all(same_numbers(t, c) for t, c in zip(tables, copies))
+
+
+def test_entries_to_sparse_equals_coalesce() -> None:
+    """`AffinityEntries.to_sparse` builds what coalesce() makes of both triangles and the unit
+    diagonal: the same indices and values, flagged coalesced; also without entries and with m = 0."""
+    gen = torch.Generator().manual_seed(4)
+    n_patches, m = 3, 9
+    upper = torch.triu(torch.ones(m, m, dtype=torch.bool), 1).nonzero()
+    index = torch.cat([torch.full((len(upper), 1), p) for p in range(n_patches)]), upper.repeat(n_patches, 1)
+    index = torch.cat(index, 1)[torch.randperm(n_patches * len(upper), generator=gen)[:50]]  # any order
+    cases = [
+        AffinityEntries(index, torch.rand(50, generator=gen, dtype=torch.float64), torch.rand(n_patches, m, generator=gen) > 0.3),
+        AffinityEntries(index[:0], torch.zeros(0), torch.rand(n_patches, m, generator=gen) > 0.3),
+        AffinityEntries(index[:0], torch.zeros(0), torch.zeros(n_patches, 0, dtype=torch.bool)),
+    ]
+    for entries in cases:
+        upper, diag = entries.index, entries.valid.nonzero()
+        idx = torch.cat([upper, upper[:, [0, 2, 1]], torch.stack([diag[:, 0], diag[:, 1], diag[:, 1]], 1)])
+        val = torch.cat([entries.value, entries.value, entries.value.new_ones(diag.shape[0])])
+        expected = torch.sparse_coo_tensor(idx.T, val, entries.shape, check_invariants=True).coalesce()
+        got = entries.to_sparse()
+        assert got.is_coalesced() and got.shape == expected.shape and got.dtype == expected.dtype
+        assert torch.equal(got.indices(), expected.indices()) and torch.equal(got.values(), expected.values())
 
 
 def test_closest_points_equal_loop() -> None:

@@ -146,10 +146,16 @@ class AffinityEntries:
 
     def to_sparse(self) -> torch.Tensor:
         """Symmetric coalesced sparse COO (P, m, m) with the unit diagonal on valid associations."""
-        upper, diag = self.index, self.valid.nonzero()
-        idx = torch.cat([upper, upper[:, [0, 2, 1]], torch.stack([diag[:, 0], diag[:, 1], diag[:, 1]], 1)])
-        val = torch.cat([self.value, self.value, self.value.new_ones(diag.shape[0])])
-        return torch.sparse_coo_tensor(idx.T, val, self.shape, check_invariants=False).coalesce()
+        # Coalesced order is by the flat index (p * m + i) * m + j; every entry occurs once (upper,
+        # lower, diagonal), so sorting the flat indices is all coalesce() would do.
+        _, m, _ = self.shape
+        patch, i, j = self.index.unbind(1)
+        diag = self.valid.nonzero()
+        flat = torch.cat([(patch * m + i) * m + j, (patch * m + j) * m + i, (diag[:, 0] * m + diag[:, 1]) * m + diag[:, 1]])
+        flat, order = flat.sort()
+        val = torch.cat([self.value, self.value, self.value.new_ones(diag.shape[0])])[order]
+        idx = torch.stack([flat // (m * m), flat // m % m, flat % m])
+        return torch.sparse_coo_tensor(idx, val, self.shape, is_coalesced=True, check_invariants=False)
 
 
 def affinity_entries(
