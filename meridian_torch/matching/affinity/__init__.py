@@ -50,8 +50,9 @@ measurement behind the default: README, Why the defaults).
 
 Modules: `lines` (bounded-line geometry), `scores` (the kernel, primitive-pair tables and pair
 scores), `gather` (the associations' geometry, gate tables and unary scores), `blocks` (the
-gated row-block evaluation), `compiled` (its numba kernel for CPU tensors); this one holds the
-entry points. Names with a leading underscore are internal to the package.
+gated row-block evaluation), `compiled` (numba kernels for CPU tensors: the entries, the
+line-pair tables); this one holds the entry points. Names with a leading underscore are
+internal to the package.
 """
 
 from __future__ import annotations

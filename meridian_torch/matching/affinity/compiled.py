@@ -1,4 +1,5 @@
-"""Compiled (numba) evaluation of the gated affinity entries, for tensors on the CPU.
+"""Compiled (numba) evaluation of the gated affinity entries and of the line-pair tables, for
+tensors on the CPU (the tables: `_compiled_line_pair_table`, below).
 
 The torch path (`blocks`) builds (P, rows, cols) keys, gathers the gate tables, finds the
 survivors with nonzero and scores them in ~20 small ops on flat index lists: ~90 % of the
