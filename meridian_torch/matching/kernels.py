@@ -355,3 +355,43 @@ def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
         flat_out[k] = np.float64(flat_in[k] >> _SHIFT_11) * _TWO_TO_MINUS_53
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def support_walks(index: np.ndarray, value: np.ndarray, validf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The degree (M' valid) * valid and the two-step walk count M' degree (P, m) of
+    `particle_problem.support_pruning`, M' given by its strict upper-triangle entries index (n, 3)
+    (patch, i, j) and value (n,); validf (P, m) in value's dtype. Each product M' x is summed
+    entry by entry, first into the rows i, then into the rows j: torch's two index_add_ passes."""
+    degree = _upper_times(index, value, validf) * validf
+    return degree, _upper_times(index, value, degree)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _upper_times(index: np.ndarray, value: np.ndarray, x: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(x)
+    for e in range(len(value)):
+        out[index[e, 0], index[e, 1]] += value[e] * x[index[e, 0], index[e, 2]]
+    for e in range(len(value)):
+        out[index[e, 0], index[e, 2]] += value[e] * x[index[e, 0], index[e, 1]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def renumbered_entries(index: np.ndarray, value: np.ndarray, new_of_old: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entries (patch, i, j), value whose i and j both have a new number (new_of_old (P, m)
+    >= 0), in their order, with i and j renumbered."""
+    keep = np.empty(len(value), np.bool_)
+    for e in range(len(value)):
+        keep[e] = new_of_old[index[e, 0], index[e, 1]] >= 0 and new_of_old[index[e, 0], index[e, 2]] >= 0
+    n_kept = keep.sum()
+    kept_index = np.empty((n_kept, 3), np.int64)
+    kept_value = np.empty(n_kept, value.dtype)
+    k = 0
+    for e in range(len(value)):
+        if keep[e]:
+            b = index[e, 0]
+            kept_index[k, 0], kept_index[k, 1], kept_index[k, 2] = b, new_of_old[b, index[e, 1]], new_of_old[b, index[e, 2]]
+            kept_value[k] = value[e]
+            k += 1
+    return kept_index, kept_value
