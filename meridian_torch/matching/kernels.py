@@ -10,8 +10,10 @@ passes over large intermediates, not arithmetic, were the cost.
   data and seed, never on the batch or its padding.
 - `mix_words`, `uniform_words`: the splitmix64 finaliser of the sampler's random words and their
   uniform numbers (`matching.particle_noise`), bitwise the torch expressions.
-- `round_particles`, `greedy_representatives`: the sampler's rounding of particles to sets and the
-  greedy clustering of sets (`matching.hypotheses`), the same sets as torch's sort and sweeps.
+- `round_particles`, `greedy_clusters`: the sampler's rounding of particles to sets and the
+  greedy clustering of sets (`matching.hypotheses`), the same sets and clusters as torch's sort
+  and sweeps; `support_walks`, `renumbered_entries`: the support pruning of the sampler's
+  problem (`matching.particle_problem`), bitwise torch's index_add_ passes.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 """
 
@@ -21,7 +23,8 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "greedy_representatives", "grown", "langevin_patches", "mix_words", "near_pairs", "round_particles", "uniform_words",
+    "greedy_clusters", "grown", "langevin_patches", "mix_words", "near_pairs", "renumbered_entries", "round_particles",
+    "support_walks", "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
@@ -332,23 +335,6 @@ def round_particles(
 
 
 @njit(cache=True, nogil=True)
-def greedy_representatives(close: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(P, S) bool: in index order, a valid set is a cluster representative unless it is close
-    (close (P, S, S) bool) to an earlier representative (`matching.hypotheses`)."""
-    n_patches, n_sets = valid.shape
-    rep = np.zeros((n_patches, n_sets), np.bool_)
-    for p in range(n_patches):
-        for s in range(n_sets):
-            if valid[p, s]:
-                rep[p, s] = True
-                for r in range(s):
-                    if rep[p, r] and close[p, s, r]:
-                        rep[p, s] = False
-                        break
-    return rep
-
-
-@njit(cache=True, nogil=True)
 def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
     """out = U[0, 1) from the top 53 bits of the uint64 words z (computed in float64, then
     rounded to out's dtype)."""
@@ -395,3 +381,65 @@ def renumbered_entries(index: np.ndarray, value: np.ndarray, new_of_old: np.ndar
             kept_value[k] = value[e]
             k += 1
     return kept_index, kept_value
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def greedy_clusters(
+    t: np.ndarray, theta: np.ndarray, valid: np.ndarray, counts: np.ndarray, limits: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The greedy clustering of `matching.hypotheses` for poses t (P, S, 2), theta (P, S): in
+    index order a valid set joins the first earlier representative close to it, else founds a
+    cluster. Returns the representatives (P, S) bool and their weights (P, S), the summed counts
+    of the valid sets that join them (a set joins the first representative close to it; none:
+    set 0's cluster); 0 elsewhere. Only the pairs the walk needs are compared, in the dtype of
+    t with limits = (translation, rotation in radians, pi, 2 pi) in it: torch's expressions."""
+    n_patches, n_sets = valid.shape
+    rep = np.zeros((n_patches, n_sets), np.bool_)
+    weight = np.zeros((n_patches, n_sets), np.int64)
+    joined = np.empty(n_sets, np.int64)
+    reps = np.empty(n_sets, np.int64)
+    for p in range(n_patches):
+        n_reps = 0
+        for s in range(n_sets):
+            joined[s] = 0
+            if not valid[p, s]:
+                continue
+            joined[s] = -1
+            for q in range(n_reps):
+                if _close(t, theta, limits, p, s, reps[q]):
+                    joined[s] = reps[q]
+                    break
+            if joined[s] < 0:
+                rep[p, s] = True
+                reps[n_reps] = s
+                n_reps += 1
+        # A representative joins itself unless its pose is not close to itself (NaN): then the
+        # first later representative close to it, or set 0's cluster.
+        for q in range(n_reps):
+            s = reps[q]
+            joined[s] = 0
+            for later in range(q, n_reps):
+                if _close(t, theta, limits, p, s, reps[later]):
+                    joined[s] = reps[later]
+                    break
+        for s in range(n_sets):
+            if valid[p, s]:
+                weight[p, joined[s]] += counts[p, s]
+        for s in range(n_sets):
+            if not rep[p, s]:
+                weight[p, s] = 0
+    return rep, weight
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _close(t: np.ndarray, theta: np.ndarray, limits: np.ndarray, p: int, s: int, r: int) -> bool:
+    """|t_s - t_r| <= limits[0] and |wrap(theta_s - theta_r)| <= limits[1], wrap(a) = remainder(a +
+    pi, 2 pi) - pi with torch's remainder (fmod, then + 2 pi if the signs differ)."""
+    dx, dy = t[p, s, 0] - t[p, r, 0], t[p, s, 1] - t[p, r, 1]
+    if not np.sqrt(dx * dx + dy * dy) <= limits[0]:
+        return False
+    shifted = (theta[p, s] - theta[p, r]) + limits[2]
+    wrapped = np.fmod(shifted, limits[3])
+    if wrapped != 0 and (limits[3] < 0) != (wrapped < 0):
+        wrapped = wrapped + limits[3]
+    return abs(wrapped - limits[2]) <= limits[1]
