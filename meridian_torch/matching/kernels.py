@@ -443,3 +443,56 @@ def _close(t: np.ndarray, theta: np.ndarray, limits: np.ndarray, p: int, s: int,
     if wrapped != 0 and (limits[3] < 0) != (wrapped < 0):
         wrapped = wrapped + limits[3]
     return abs(wrapped - limits[2]) <= limits[1]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def merge_sets(
+    masks: np.ndarray, keep: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The merge of identical sets of `matching.particles._merge`: masks (P, N, m) bool, keep
+    (P, N) bool, weights (m,) int64 of the linear hash. Per patch the particles in the order of
+    their (hash key, particle), signed and stable, kept ones first; returns that order (P, N),
+    the masks in it (P, N, m), first (P, N) bool marking the first particle of each run of equal
+    kept sets, and counts (P, N), the run's length at its first particle (0 elsewhere)."""
+    n_patches, n_particles, m = masks.shape
+    order = np.empty((n_patches, n_particles), np.int64)
+    masks_sorted = np.empty_like(masks)
+    first = np.zeros((n_patches, n_particles), np.bool_)
+    counts = np.zeros((n_patches, n_particles), np.int64)
+    words = weights.view(np.uint64)
+    key = np.empty(n_particles, np.uint64)
+    for p in range(n_patches):
+        for n in range(n_particles):
+            k = np.uint64(0)  # sums wrap mod 2^64
+            for i in range(m):
+                if masks[p, n, i]:
+                    k += words[i]
+            key[n] = k
+        by_key = np.argsort(key.view(np.int64), kind="mergesort")
+        j = 0
+        for kept in (True, False):
+            for n in by_key:
+                if keep[p, n] == kept:
+                    order[p, j] = n
+                    j += 1
+        last = -1  # position of the current run's first particle
+        for j in range(n_particles):
+            n = order[p, j]
+            masks_sorted[p, j] = masks[p, n]
+            if not keep[p, n]:
+                continue
+            if last >= 0 and key[n] == key[order[p, j - 1]] and _equal_rows(masks[p, n], masks[p, order[p, j - 1]]):
+                counts[p, last] += 1
+            else:
+                first[p, j] = True
+                counts[p, j] = 1
+                last = j
+    return order, masks_sorted, first, counts
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _equal_rows(a: np.ndarray, b: np.ndarray) -> bool:
+    for i in range(a.shape[0]):
+        if a[i] != b[i]:
+            return False
+    return True

@@ -1,0 +1,89 @@
+"""Compiled passes of the sampler problem and the particles' bookkeeping against the torch
+expressions they replace: the same numbers, bit for bit."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from meridian_torch.matching.affinity import AffinityEntries
+from meridian_torch.matching.particle_problem import _prune
+
+
+def random_entries(seed: int, n_patches: int, m: int, fill: float, dtype: torch.dtype) -> tuple[AffinityEntries, torch.Tensor]:
+    """Random strict upper-triangle entries in a shuffled order (as the affinity emits them,
+    not sorted), valid masks with padding, and pairs."""
+    gen = torch.Generator().manual_seed(seed)
+    upper = (torch.rand(n_patches, m, m, generator=gen) < fill).triu(1)
+    index = upper.nonzero()
+    index = index[torch.randperm(len(index), generator=gen)]
+    value = (0.05 + torch.rand(len(index), generator=gen, dtype=torch.float64)).clamp_max(1.0).to(dtype)
+    valid = torch.rand(n_patches, m, generator=gen) < 0.9
+    if m:
+        valid[0, m // 2 :] = False  # a padded tail
+    pairs = torch.randint(0, 50, (n_patches, m, 2), generator=gen)
+    return AffinityEntries(index, value, valid), pairs
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(("n_patches", "m", "fill", "k"), [
+    (3, 60, 0.2, 12), (2, 40, 0.02, 25), (4, 30, 0.5, 100), (2, 0, 0.0, 5), (3, 25, 0.0, 4), (1, 1, 0.0, 1),
+])
+def test_compiled_pruning_equals_the_torch_passes(dtype: torch.dtype, n_patches: int, m: int, fill: float, k: int) -> None:
+    # CPU tensors prune with compiled walks over the entries, other devices with index_add_:
+    # the same scores, kept associations and renumbered entries in the same order.
+    entries, pairs = random_entries(m + n_patches, n_patches, m, fill, dtype)
+    got = _prune(entries, entries.valid, pairs, k, compiled=True)
+    want = _prune(entries, entries.valid, pairs, k, compiled=False)
+    for a, b in [(got.entries.index, want.entries.index), (got.entries.value, want.entries.value),
+                 (got.entries.valid, want.entries.valid), (got.pairs, want.pairs), (got.index, want.index)]:
+        assert a.dtype == b.dtype and torch.equal(a, b)
+    assert got.m == want.m == m
+    if fill >= 0.2:  # the cases are exercised: entries kept, and some dropped
+        assert 0 < len(got.entries.value) < len(entries.value)
+
+
+@pytest.mark.parametrize(("n_patches", "n_particles", "m"), [(3, 64, 30), (2, 40, 130), (2, 0, 10), (0, 8, 5), (2, 8, 0)])
+def test_compiled_merge_equals_the_torch_sorts(n_patches: int, n_particles: int, m: int) -> None:
+    # CPU tensors merge identical sets in a compiled pass, other devices with torch's sorts: the
+    # same order, sorted masks, firsts and counts, with repeated sets and rejected copies.
+    from meridian_torch.matching.particles import _merge
+
+    gen = torch.Generator().manual_seed(n_particles + m)
+    distinct = torch.rand(n_patches, 6, m, generator=gen) < 0.2
+    masks = distinct.gather(1, torch.randint(0, 6, (n_patches, n_particles, 1), generator=gen).expand(-1, -1, m))
+    keep = torch.rand(n_patches, n_particles, generator=gen) < 0.8
+    got = _merge(masks, keep, compiled=True)
+    want = _merge(masks, keep, compiled=False)
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype and torch.equal(a, b)
+    if n_patches and n_particles:
+        assert (want[3] > 1).any() and int(want[3].sum()) == int(keep.sum())
+
+
+def test_compiled_merge_never_merges_colliding_keys() -> None:
+    # With unit hash weights every two sets of a size collide: the kernel against the plain
+    # definition (kept first, by signed key, then particle; runs of equal kept sets).
+    from meridian_torch.matching.kernels import merge_sets
+
+    gen = torch.Generator().manual_seed(9)
+    masks = torch.rand(2, 50, 8, generator=gen) < 0.3
+    masks[:, 25:] = masks[:, :25]  # repeats
+    keep = torch.rand(2, 50, generator=gen) < 0.8
+    weights = torch.full((8,), 1 << 62)  # keys 0, 2^62, -2^63, -2^62: wrapping and signed order
+    order, masks_s, first, counts = (torch.from_numpy(a) for a in merge_sets(masks.numpy(), keep.numpy(), weights.numpy()))
+    for p in range(2):
+        key = [(int(masks[p, n].sum()) * (1 << 62) + (1 << 63)) % (1 << 64) - (1 << 63) for n in range(50)]
+        expected = sorted(range(50), key=lambda n: (not bool(keep[p, n]), key[n], n))
+        assert order[p].tolist() == expected
+        assert torch.equal(masks_s[p], masks[p, expected])
+        runs: list[int] = []
+        for j, n in enumerate(expected):
+            if not keep[p, n]:
+                continue
+            if j and torch.equal(masks[p, n], masks[p, expected[j - 1]]) and keep[p, expected[j - 1]]:
+                runs[-1] += 1
+            else:
+                runs.append(1)
+        assert counts[p][first[p]].tolist() == runs and int(counts[p][~first[p]].abs().sum()) == 0
+    assert len(set(key)) < len(runs)  # colliding keys of different sets were kept apart
