@@ -19,7 +19,7 @@ def random_entries(seed: int, n_patches: int, m: int, fill: float, dtype: torch.
     index = index[torch.randperm(len(index), generator=gen)]
     value = (0.05 + torch.rand(len(index), generator=gen, dtype=torch.float64)).clamp_max(1.0).to(dtype)
     valid = torch.rand(n_patches, m, generator=gen) < 0.9
-    if m:
+    if n_patches and m:
         valid[0, m // 2 :] = False  # a padded tail
     pairs = torch.randint(0, 50, (n_patches, m, 2), generator=gen)
     return AffinityEntries(index, value, valid), pairs
@@ -87,3 +87,24 @@ def test_compiled_merge_never_merges_colliding_keys() -> None:
                 runs.append(1)
         assert counts[p][first[p]].tolist() == runs and int(counts[p][~first[p]].abs().sum()) == 0
     assert len(set(key)) < len(runs)  # colliding keys of different sets were kept apart
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(("n_patches", "m", "fill"), [(3, 40, 0.2), (2, 25, 0.6), (2, 0, 0.0), (0, 5, 0.0), (3, 6, 0.0)])
+def test_compiled_block_rows_equal_the_coalesced_matrix(dtype: torch.dtype, n_patches: int, m: int, fill: float) -> None:
+    # CPU tensors sort the entries into CSR rows in a compiled pass, other devices go through
+    # the coalesced COO: the same rows, columns, patches and values, and the same matrix.
+    from meridian_torch.matching.particles import _block_rows
+
+    entries, _ = random_entries(7 * m + n_patches, n_patches, m, fill, dtype)
+    got = _block_rows(entries, compiled=True)
+    want = _block_rows(entries, compiled=False)
+    for name in ("crow", "batch", "row", "col", "value"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and torch.equal(a, b), name
+    assert got.m == want.m == m
+    dense = torch.zeros(n_patches, m, m, dtype=dtype)
+    dense[got.batch, got.row, got.col] = got.value
+    assert torch.equal(dense, entries.to_sparse().to_dense())
+    if n_patches and m:
+        assert torch.equal(got.csr().to_dense(), torch.block_diag(*dense))

@@ -496,3 +496,46 @@ def _equal_rows(a: np.ndarray, b: np.ndarray) -> bool:
         if a[i] != b[i]:
             return False
     return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def block_rows(
+    index: np.ndarray, value: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """P symmetric affinities (m, m) from their strict upper-triangle entries index (n, 3)
+    (patch, i, j), value (n,) (each pair once) and unit diagonal on valid (P, m), as the rows p m
+    + i of one CSR matrix in `AffinityEntries.to_sparse`'s coalesced order (rows, then columns
+    ascending): crow (P m + 1,), and per entry its patch, row i, column j and value."""
+    n_patches, m = valid.shape
+    crow = np.zeros(n_patches * m + 1, np.int64)
+    for e in range(len(value)):
+        crow[index[e, 0] * m + index[e, 1] + 1] += 1
+        crow[index[e, 0] * m + index[e, 2] + 1] += 1
+    for r in range(n_patches * m):
+        crow[r + 1] += crow[r] + valid[r // m, r % m]
+    nnz = crow[-1]
+    col = np.empty(nnz, np.int64)
+    out = np.empty(nnz, value.dtype)
+    slot = crow[:-1].copy()
+    for r in range(n_patches * m):
+        if valid[r // m, r % m]:
+            col[slot[r]], out[slot[r]] = r % m, 1.0
+            slot[r] += 1
+    for e in range(len(value)):
+        for a, b in ((1, 2), (2, 1)):
+            r = index[e, 0] * m + index[e, a]
+            col[slot[r]], out[slot[r]] = index[e, b], value[e]
+            slot[r] += 1
+    batch = np.empty(nnz, np.int64)
+    row = np.empty(nnz, np.int64)
+    for r in range(n_patches * m):
+        batch[crow[r] : crow[r + 1]] = r // m
+        row[crow[r] : crow[r + 1]] = r % m
+        for k in range(crow[r] + 1, crow[r + 1]):  # insertion sort of the row by column
+            c, v = col[k], out[k]
+            q = k
+            while q > crow[r] and col[q - 1] > c:
+                col[q], out[q] = col[q - 1], out[q - 1]
+                q -= 1
+            col[q], out[q] = c, v
+    return crow, batch, row, col, out
