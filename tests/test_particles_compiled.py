@@ -108,3 +108,42 @@ def test_compiled_block_rows_equal_the_coalesced_matrix(dtype: torch.dtype, n_pa
     assert torch.equal(dense, entries.to_sparse().to_dense())
     if n_patches and m:
         assert torch.equal(got.csr().to_dense(), torch.block_diag(*dense))
+
+
+def test_compiled_words_noise_and_start_equal_the_torch_expressions() -> None:
+    # The particles' words, noise scales and start, each built in one compiled pass, against
+    # the torch expressions they replace.
+    from meridian_torch.matching.particle_noise import (
+        _GOLDEN,
+        _TABLE_SIZE,
+        ROW,
+        initial_positions,
+        mix,
+        row_words,
+        srl,
+        step_noise,
+        step_words,
+        uniform,
+        wrap64,
+    )
+
+    seeds = torch.tensor([0, 1, -1, 5, (1 << 62) - 1, -(1 << 63)])
+    steps = [-1, 0, 1, 7, 99]
+    keys = torch.tensor([wrap64((step + 2) * _GOLDEN) for step in steps])
+    base = mix(seeds[None, :] + keys[:, None])
+    for n in (0, 1, 5, 64):
+        assert torch.equal(step_words(seeds, steps, n), mix(base[..., None] + torch.arange(n) * ROW))
+    for dtype in (torch.float32, torch.float64):
+        sigmas = [1.0, 0.7, 1.0 / 3.0, 0.0]  # the last step of an annealed schedule has no noise
+        offsets, scale = step_noise(seeds, sigmas, 9, dtype)
+        words = step_words(seeds, list(range(len(sigmas))), 9)
+        assert torch.equal(offsets, srl(words[..., 0], 1) % _TABLE_SIZE)
+        want = torch.tensor(sigmas, dtype=dtype)[:, None, None] * (1.0 - 2.0 * (words & 1).to(dtype))
+        assert scale.dtype == dtype and torch.equal(scale, want)
+        assert torch.equal(scale.signbit(), want.signbit())  # -0.0 where a zero sigma is negated
+        validf = (torch.rand(6, 11, generator=torch.Generator().manual_seed(1)) < 0.7).to(dtype)
+        x = initial_positions(seeds, validf, 13)
+        coord_keys = mix(torch.arange(11) + ROW)
+        expected = uniform(mix(row_words(seeds, -1, 13)[:, None, :] ^ coord_keys[None, :, None]), dtype) * validf[:, :, None]
+        assert x.dtype == dtype and torch.equal(x, expected)
+        assert initial_positions(seeds, validf[:, :0], 13).shape == (6, 0, 13)

@@ -8,12 +8,16 @@ passes over large intermediates, not arithmetic, were the cost.
   dynamics and noise, other rounding (operation order and torch's fused multiply-adds), so it
   agrees with the torch loop to rounding, not bitwise. A patch's result depends only on its own
   data and seed, never on the batch or its padding.
-- `mix_words`, `uniform_words`: the splitmix64 finaliser of the sampler's random words and their
-  uniform numbers (`matching.particle_noise`), bitwise the torch expressions.
+- `mix_words`, `uniform_words`, `particle_words`, `signed_sigmas`, `initial_particles`: the
+  splitmix64 finaliser of the sampler's random words, their uniform numbers, and the words,
+  noise signs and start of every particle built in one pass each (`matching.particle_noise`),
+  bitwise the torch expressions.
 - `round_particles`, `greedy_clusters`: the sampler's rounding of particles to sets and the
   greedy clustering of sets (`matching.hypotheses`), the same sets and clusters as torch's sort
   and sweeps; `support_walks`, `renumbered_entries`: the support pruning of the sampler's
-  problem (`matching.particle_problem`), bitwise torch's index_add_ passes.
+  problem (`matching.particle_problem`), bitwise torch's index_add_ passes; `block_rows`,
+  `merge_sets`: the sampler's affinity sorted into CSR rows (a coalesced COO's order) and the
+  merge of identical sets (`matching.particles`), the same order and integers as torch's sorts.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 """
 
@@ -23,8 +27,9 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "greedy_clusters", "grown", "langevin_patches", "mix_words", "near_pairs", "renumbered_entries", "round_particles",
-    "support_walks", "uniform_words",
+    "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets", "mix_words",
+    "near_pairs", "particle_words", "renumbered_entries", "round_particles", "signed_sigmas", "support_walks",
+    "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
@@ -184,11 +189,15 @@ def mix_words(z: np.ndarray) -> np.ndarray:
     out = np.empty_like(z)
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
-        v = flat_in[k]
-        v = (v ^ (v >> _SHIFT_30)) * _MIX_1
-        v = (v ^ (v >> _SHIFT_27)) * _MIX_2
-        flat_out[k] = v ^ (v >> _SHIFT_31)
+        flat_out[k] = _mix(flat_in[k])
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mix(v: np.uint64) -> np.uint64:
+    v = (v ^ (v >> _SHIFT_30)) * _MIX_1
+    v = (v ^ (v >> _SHIFT_27)) * _MIX_2
+    return v ^ (v >> _SHIFT_31)
 
 
 @njit(cache=True, nogil=True)
@@ -340,7 +349,12 @@ def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
     rounded to out's dtype)."""
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
-        flat_out[k] = np.float64(flat_in[k] >> _SHIFT_11) * _TWO_TO_MINUS_53
+        flat_out[k] = _uniform(flat_in[k])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _uniform(v: np.uint64) -> float:
+    return np.float64(v >> _SHIFT_11) * _TWO_TO_MINUS_53
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -539,3 +553,39 @@ def block_rows(
                 q -= 1
             col[q], out[q] = c, v
     return crow, batch, row, col, out
+
+
+@njit(cache=True, nogil=True)
+def particle_words(base: np.ndarray, n: int, row: np.uint64) -> np.ndarray:
+    """The words mix(base + k row) (S, n) of the sampler's particles k < n for the uint64 words
+    base (S,) (sums and products wrap mod 2^64), in one pass."""
+    out = np.empty((len(base), n), np.uint64)
+    for a in range(len(base)):
+        for k in range(n):
+            out[a, k] = _mix(base[a] + np.uint64(k) * row)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def signed_sigmas(words: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """sigmas[t] x (1 - 2 (words[t, k] & 1)) (T, K) in sigmas' dtype: the noise scale of every
+    step and particle with its sign from the word's low bit (negation is the exact product)."""
+    out = np.empty(words.shape, sigmas.dtype)
+    for t in range(words.shape[0]):
+        for k in range(words.shape[1]):
+            out[t, k] = -sigmas[t] if words[t, k] & np.uint64(1) else sigmas[t]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def initial_particles(words: np.ndarray, coord_keys: np.ndarray, validf: np.ndarray) -> np.ndarray:
+    """The sampler's start x[p, i, n] = U(mix(words[p, n] ^ coord_keys[i])) x validf[p, i] (P, m, N)
+    in validf's dtype (U as `uniform_words`, rounded to the dtype before the product)."""
+    n_patches, m = validf.shape
+    out = np.empty((n_patches, m, words.shape[1]), validf.dtype)
+    for p in range(n_patches):
+        for i in range(m):
+            for n in range(words.shape[1]):
+                out[p, i, n] = _uniform(_mix(words[p, n] ^ coord_keys[i]))
+                out[p, i, n] *= validf[p, i]
+    return out

@@ -61,15 +61,12 @@ from meridian_torch.core.parallel import thread_map
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.kernels import block_rows, langevin_patches, merge_sets, round_particles
 from meridian_torch.matching.particle_noise import (
-    ROW,
     add_noise_,
     circular_table,
-    mix,
+    initial_positions,
     patch_seeds,
-    row_words,
     slab_table,
     step_noise,
-    uniform,
 )
 from meridian_torch.matching.particle_problem import SamplerProblem, sampler_problem
 
@@ -196,17 +193,13 @@ def _noise_schedule(cfg: ParticleConfig) -> list[float]:
 def _run_dynamics(
     A: _BlockRows, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor, compiled: bool | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Langevin loop for all patches on the penalised affinity A; returns
-    final x (P, m, N) and iterations (P,). `compiled` (default: on CPU tensors) runs the compiled
-    loop, else torch's (other devices)."""
-    n_patches, m = valid.shape
-    n_particles = cfg.n_particles
+    """Langevin loop for all patches on the penalised affinity A; returns final x (P, m, N) and
+    iterations (P,). `compiled` (default: on CPU tensors) runs the compiled loop, else torch's
+    (other devices)."""
     dtype, device = d.dtype, d.device
     validf = valid.to(dtype)
-    coord_keys = mix(torch.arange(m, device=device, dtype=torch.int64) + ROW)
-    init_words = mix(row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
-    x = uniform(init_words, dtype) * validf[:, :, None]
-    offsets, scale = step_noise(seeds, _noise_schedule(cfg), n_particles, dtype)
+    x = initial_positions(seeds, validf, cfg.n_particles)
+    offsets, scale = step_noise(seeds, _noise_schedule(cfg), cfg.n_particles, dtype)
     if device.type == "cpu" if compiled is None else compiled:
         return _compiled_dynamics(A, d, validf, x, offsets, scale, cfg)
     return _torch_dynamics(_BlockOperator(A), d, validf, x, offsets, scale, cfg)
