@@ -18,6 +18,7 @@ def random_entries(seed: int, n_patches: int, m: int, fill: float, dtype: torch.
     index = upper.nonzero()
     index = index[torch.randperm(len(index), generator=gen)]
     value = (0.05 + torch.rand(len(index), generator=gen, dtype=torch.float64)).clamp_max(1.0).to(dtype)
+    value[::2] = 0.5  # repeated values: tied walk counts
     valid = torch.rand(n_patches, m, generator=gen) < 0.9
     if n_patches and m:
         valid[0, m // 2 :] = False  # a padded tail
