@@ -12,8 +12,9 @@ pairs below the affinity threshold alike) and d = the patch's number of valid as
 Batching: all P patches and all N particles live in one (P, N, m) tensor and advance together.
 Because Cb = J - 1[M != 0] on the valid block, x M_d = x A - d * sum(x) with A = M + d 1[M != 0]
 sharing M's sparsity, so a sparse affinity stays sparse (the rows of one block-diagonal CSR
-matrix, built once per batch) and each step is one batched product. Every `check_interval` iterations a patch whose EMA of the mean objective has settled
-for `patience` checks is frozen and dropped from the working batch.
+matrix, built once per batch) and each step is one batched product. Every `check_interval`
+iterations a patch whose EMA of the mean objective has settled for `patience` checks is frozen
+and dropped from the working batch.
 
 Randomness is counter based: a 64-bit mix (splitmix64 finaliser) of (patch seed, iteration,
 particle, association index). The per-patch seeds are drawn from the caller's generator, so
@@ -27,7 +28,10 @@ Cost: on the CPU the loop and the rounding are compiled (`matching.kernels`): on
 particles at a time, in cache, each step in a few fused passes (3.4x less time than the torch
 loop, which stays for other devices: every step in place on the (P, m, N) buffers). Either way
 `match_submap` samples the pruned problems of all its patch chunks together
-(`particle_problem.concat_problems`), so the per-call overhead is paid once per match.
+(`particle_problem.concat_problems`), so the per-call overhead is paid once per match. On the
+CPU the bookkeeping around the loop is compiled too (the CSR rows, the particles' words, noise
+signs and start, the merge of identical sets): as torch ops over the P x m x N words and masks
+it cost as much as a fifth of the loop.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
@@ -130,6 +134,7 @@ class _BlockRows:
         new_id[keep] = torch.arange(keep.numel(), device=keep.device)
         b = new_id[self.batch]
         use = b >= 0
+        # Rows are sorted by (batch, row, col); keeping batches in order keeps them sorted.
         batch, row = b[use], self.row[use]
         size = keep.numel() * self.m
         crow = torch.zeros(size + 1, dtype=torch.int64, device=keep.device)
