@@ -121,7 +121,8 @@ def step_noise(seeds: Tensor, sigmas: list[float], n_particles: int, dtype: torc
     entry would cost as much as the drift."""
     words = step_words(seeds, list(range(len(sigmas))), n_particles)
     offsets = srl(words[..., 0], 1) % _TABLE_SIZE
-    scale = signed_sigmas(_cpu_words(words).reshape(len(sigmas), -1), torch.tensor(sigmas, dtype=dtype).numpy())
+    T, P, N = words.shape
+    scale = signed_sigmas(_cpu_words(words).reshape(T, P * N), torch.tensor(sigmas, dtype=dtype).numpy())
     return offsets, torch.from_numpy(scale).reshape(words.shape).to(seeds.device)
 
 

@@ -31,7 +31,7 @@ loop, which stays for other devices: every step in place on the (P, m, N) buffer
 (`particle_problem.concat_problems`), so the per-call overhead is paid once per match. On the
 CPU the bookkeeping around the loop is compiled too (the CSR rows, the particles' words, noise
 signs and start, the merge of identical sets): as torch ops over the P x m x N words and masks
-it cost as much as a fifth of the loop.
+they cost a quarter of the time of the loop.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
