@@ -8,10 +8,16 @@ passes over large intermediates, not arithmetic, were the cost.
   dynamics and noise, other rounding (operation order and torch's fused multiply-adds), so it
   agrees with the torch loop to rounding, not bitwise. A patch's result depends only on its own
   data and seed, never on the batch or its padding.
-- `mix_words`, `uniform_words`: the splitmix64 finaliser of the sampler's random words and their
-  uniform numbers (`matching.particle_noise`), bitwise the torch expressions.
-- `round_particles`, `greedy_representatives`: the sampler's rounding of particles to sets and the
-  greedy clustering of sets (`matching.hypotheses`), the same sets as torch's sort and sweeps.
+- `mix_words`, `uniform_words`, `particle_words`, `signed_sigmas`, `initial_particles`: the
+  splitmix64 finaliser of the sampler's random words, their uniform numbers, and the words,
+  noise signs and start of every particle built in one pass each (`matching.particle_noise`),
+  bitwise the torch expressions.
+- `round_particles`, `greedy_clusters`: the sampler's rounding of particles to sets and the
+  greedy clustering of sets (`matching.hypotheses`), the same sets and clusters as torch's sort
+  and sweeps; `support_walks`, `renumbered_entries`: the support pruning of the sampler's
+  problem (`matching.particle_problem`), bitwise torch's index_add_ passes; `block_rows`,
+  `merge_sets`: the sampler's affinity sorted into CSR rows (a coalesced COO's order) and the
+  merge of identical sets (`matching.particles`), the same order and integers as torch's sorts.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 - `near_line_closeness`: verification's line score, walking `near_pairs`' grid; bitwise the torch
   expressions.
@@ -23,8 +29,9 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "greedy_representatives", "grown", "langevin_patches", "mix_words", "near_line_closeness", "near_pairs",
-    "round_particles", "uniform_words",
+    "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets", "mix_words",
+    "near_line_closeness", "near_pairs", "particle_words", "renumbered_entries", "round_particles", "signed_sigmas",
+    "support_walks", "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
@@ -184,11 +191,15 @@ def mix_words(z: np.ndarray) -> np.ndarray:
     out = np.empty_like(z)
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
-        v = flat_in[k]
-        v = (v ^ (v >> _SHIFT_30)) * _MIX_1
-        v = (v ^ (v >> _SHIFT_27)) * _MIX_2
-        flat_out[k] = v ^ (v >> _SHIFT_31)
+        flat_out[k] = _mix(flat_in[k])
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mix(v: np.uint64) -> np.uint64:
+    v = (v ^ (v >> _SHIFT_30)) * _MIX_1
+    v = (v ^ (v >> _SHIFT_27)) * _MIX_2
+    return v ^ (v >> _SHIFT_31)
 
 
 @njit(cache=True, nogil=True)
@@ -291,6 +302,51 @@ def _cell_segments(
                     slot[c] += 1
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def near_line_closeness(
+    points: np.ndarray,
+    directions: np.ndarray,
+    ends: np.ndarray,
+    segment_directions: np.ndarray,
+    valid: np.ndarray,
+    radius: float,
+    constants: np.ndarray,
+) -> np.ndarray:
+    """Verification's line score (`matching.verification.piece_closeness`) of points (P, Q, 2)
+    with unit directions (P, Q, 2) against their patch's valid segments ends (P, M, 2, 2) with
+    unit directions (P, M, 2): (P, Q) max of max(1 - d^2 / radius^2, 0), d the distance to a
+    segment with |direction · segment direction| >= cos_tol, over the segments `near_pairs`
+    pairs the point with (its grid, built from the same float64 values); 0 without one.
+    constants = (cos_tol, 1e-12, 0, 1, radius^2) in the points' dtype: each value is rounded as
+    torch's elementwise ops round it (the same operations in the same order, in that dtype), so
+    the result is bitwise theirs. Scoring while walking the grid saves writing and reading the
+    ~100k pairs of a chunk."""
+    cos_tol, floor, zero, one, radius2 = constants[0], constants[1], constants[2], constants[3], constants[4]
+    out = np.zeros(points.shape[:2], points.dtype)
+    for p in range(points.shape[0]):
+        grid, starts, cell_segments = _segment_grid(ends[p].astype(np.float64), valid[p], radius)
+        if len(cell_segments) == 0:
+            continue
+        for q in range(points.shape[1]):
+            px, py = points[p, q, 0], points[p, q, 1]
+            c = _grid_cell(grid, np.float64(px), np.float64(py))
+            if c < 0:
+                continue
+            ux, uy = directions[p, q, 0], directions[p, q, 1]
+            best = zero
+            for e in range(starts[c], starts[c + 1]):
+                m = cell_segments[e]
+                if abs(ux * segment_directions[p, m, 0] + uy * segment_directions[p, m, 1]) < cos_tol:
+                    continue
+                ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
+                abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
+                t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, floor)
+                t = min(max(t, zero), one)
+                ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
+                best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
+            out[p, q] = best
+
+
 @njit(cache=True, nogil=True)
 def grown(array: np.ndarray, capacity: int) -> np.ndarray:
     """`array` copied into a new array of `capacity` (the output buffers' doubling)."""
@@ -356,72 +412,248 @@ def round_particles(
 
 
 @njit(cache=True, nogil=True)
-def greedy_representatives(close: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(P, S) bool: in index order, a valid set is a cluster representative unless it is close
-    (close (P, S, S) bool) to an earlier representative (`matching.hypotheses`)."""
-    n_patches, n_sets = valid.shape
-    rep = np.zeros((n_patches, n_sets), np.bool_)
-    for p in range(n_patches):
-        for s in range(n_sets):
-            if valid[p, s]:
-                rep[p, s] = True
-                for r in range(s):
-                    if rep[p, r] and close[p, s, r]:
-                        rep[p, s] = False
-                        break
-    return rep
-
-
-@njit(cache=True, nogil=True)
 def uniform_words(z: np.ndarray, out: np.ndarray) -> None:
     """out = U[0, 1) from the top 53 bits of the uint64 words z (computed in float64, then
     rounded to out's dtype)."""
     flat_in, flat_out = z.reshape(-1), out.reshape(-1)
     for k in range(flat_in.size):
-        flat_out[k] = np.float64(flat_in[k] >> _SHIFT_11) * _TWO_TO_MINUS_53
+        flat_out[k] = _uniform(flat_in[k])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _uniform(v: np.uint64) -> float:
+    return np.float64(v >> _SHIFT_11) * _TWO_TO_MINUS_53
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def near_line_closeness(
-    points: np.ndarray,
-    directions: np.ndarray,
-    ends: np.ndarray,
-    segment_directions: np.ndarray,
-    valid: np.ndarray,
-    radius: float,
-    constants: np.ndarray,
-) -> np.ndarray:
-    """Verification's line score (`matching.verification.piece_closeness`) of points (P, Q, 2)
-    with unit directions (P, Q, 2) against their patch's valid segments ends (P, M, 2, 2) with
-    unit directions (P, M, 2): (P, Q) max of max(1 - d^2 / radius^2, 0), d the distance to a
-    segment with |direction · segment direction| >= cos_tol, over the segments `near_pairs`
-    pairs the point with (its grid, built from the same float64 values); 0 without one.
-    constants = (cos_tol, 1e-12, 0, 1, radius^2) in the points' dtype: each value is rounded as
-    torch's elementwise ops round it (the same operations in the same order, in that dtype), so
-    the result is bitwise theirs. Scoring while walking the grid saves writing and reading the
-    ~100k pairs of a chunk."""
-    cos_tol, floor, zero, one, radius2 = constants[0], constants[1], constants[2], constants[3], constants[4]
-    out = np.zeros(points.shape[:2], points.dtype)
-    for p in range(points.shape[0]):
-        grid, starts, cell_segments = _segment_grid(ends[p].astype(np.float64), valid[p], radius)
-        if len(cell_segments) == 0:
-            continue
-        for q in range(points.shape[1]):
-            px, py = points[p, q, 0], points[p, q, 1]
-            c = _grid_cell(grid, np.float64(px), np.float64(py))
-            if c < 0:
+def support_walks(index: np.ndarray, value: np.ndarray, validf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The degree (M' valid) * valid and the two-step walk count M' degree (P, m) of
+    `particle_problem.support_pruning`, M' given by its strict upper-triangle entries index (n, 3)
+    (patch, i, j) and value (n,); validf (P, m) in value's dtype. Each product M' x is summed
+    entry by entry, first into the rows i, then into the rows j: torch's two index_add_ passes."""
+    degree = _upper_times(index, value, validf) * validf
+    return degree, _upper_times(index, value, degree)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _upper_times(index: np.ndarray, value: np.ndarray, x: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(x)
+    for e in range(len(value)):
+        out[index[e, 0], index[e, 1]] += value[e] * x[index[e, 0], index[e, 2]]
+    for e in range(len(value)):
+        out[index[e, 0], index[e, 2]] += value[e] * x[index[e, 0], index[e, 1]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def renumbered_entries(index: np.ndarray, value: np.ndarray, new_of_old: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entries (patch, i, j), value whose i and j both have a new number (new_of_old (P, m)
+    >= 0), in their order, with i and j renumbered."""
+    keep = np.empty(len(value), np.bool_)
+    for e in range(len(value)):
+        keep[e] = new_of_old[index[e, 0], index[e, 1]] >= 0 and new_of_old[index[e, 0], index[e, 2]] >= 0
+    n_kept = keep.sum()
+    kept_index = np.empty((n_kept, 3), np.int64)
+    kept_value = np.empty(n_kept, value.dtype)
+    k = 0
+    for e in range(len(value)):
+        if keep[e]:
+            b = index[e, 0]
+            kept_index[k, 0], kept_index[k, 1], kept_index[k, 2] = b, new_of_old[b, index[e, 1]], new_of_old[b, index[e, 2]]
+            kept_value[k] = value[e]
+            k += 1
+    return kept_index, kept_value
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def greedy_clusters(
+    t: np.ndarray, theta: np.ndarray, valid: np.ndarray, counts: np.ndarray, limits: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The greedy clustering of `matching.hypotheses` for poses t (P, S, 2), theta (P, S): in
+    index order a valid set joins the first earlier representative close to it, else founds a
+    cluster. Returns the representatives (P, S) bool and their weights (P, S), the summed counts
+    of the valid sets that join them (a set joins the first representative close to it; none:
+    set 0's cluster); 0 elsewhere. Only the pairs the walk needs are compared, in the dtype of
+    t with limits = (translation, rotation in radians, pi, 2 pi) in it: torch's expressions."""
+    n_patches, n_sets = valid.shape
+    rep = np.zeros((n_patches, n_sets), np.bool_)
+    weight = np.zeros((n_patches, n_sets), np.int64)
+    joined = np.empty(n_sets, np.int64)
+    reps = np.empty(n_sets, np.int64)
+    for p in range(n_patches):
+        n_reps = 0
+        for s in range(n_sets):
+            joined[s] = 0
+            if not valid[p, s]:
                 continue
-            ux, uy = directions[p, q, 0], directions[p, q, 1]
-            best = zero
-            for e in range(starts[c], starts[c + 1]):
-                m = cell_segments[e]
-                if abs(ux * segment_directions[p, m, 0] + uy * segment_directions[p, m, 1]) < cos_tol:
-                    continue
-                ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
-                abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
-                t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, floor)
-                t = min(max(t, zero), one)
-                ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
-                best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
-            out[p, q] = best
+            joined[s] = -1
+            for q in range(n_reps):
+                if _close(t, theta, limits, p, s, reps[q]):
+                    joined[s] = reps[q]
+                    break
+            if joined[s] < 0:
+                rep[p, s] = True
+                reps[n_reps] = s
+                n_reps += 1
+        # A representative joins itself unless its pose is not close to itself (NaN): then the
+        # first later representative close to it, or set 0's cluster.
+        for q in range(n_reps):
+            s = reps[q]
+            joined[s] = 0
+            for later in range(q, n_reps):
+                if _close(t, theta, limits, p, s, reps[later]):
+                    joined[s] = reps[later]
+                    break
+        for s in range(n_sets):
+            if valid[p, s]:
+                weight[p, joined[s]] += counts[p, s]
+        for s in range(n_sets):
+            if not rep[p, s]:
+                weight[p, s] = 0
+    return rep, weight
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _close(t: np.ndarray, theta: np.ndarray, limits: np.ndarray, p: int, s: int, r: int) -> bool:
+    """|t_s - t_r| <= limits[0] and |wrap(theta_s - theta_r)| <= limits[1], wrap(a) = remainder(a +
+    pi, 2 pi) - pi with torch's remainder (fmod, then + 2 pi if the signs differ)."""
+    dx, dy = t[p, s, 0] - t[p, r, 0], t[p, s, 1] - t[p, r, 1]
+    if not np.sqrt(dx * dx + dy * dy) <= limits[0]:
+        return False
+    shifted = (theta[p, s] - theta[p, r]) + limits[2]
+    wrapped = np.fmod(shifted, limits[3])
+    if wrapped != 0 and (limits[3] < 0) != (wrapped < 0):
+        wrapped = wrapped + limits[3]
+    return abs(wrapped - limits[2]) <= limits[1]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def merge_sets(
+    masks: np.ndarray, keep: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The merge of identical sets of `matching.particles._merge`: masks (P, N, m) bool, keep
+    (P, N) bool, weights (m,) int64 of the linear hash. Per patch the particles in the order of
+    their (hash key, particle), signed and stable, kept ones first; returns that order (P, N),
+    the masks in it (P, N, m), first (P, N) bool marking the first particle of each run of equal
+    kept sets, and counts (P, N), the run's length at its first particle (0 elsewhere)."""
+    n_patches, n_particles, m = masks.shape
+    order = np.empty((n_patches, n_particles), np.int64)
+    masks_sorted = np.empty_like(masks)
+    first = np.zeros((n_patches, n_particles), np.bool_)
+    counts = np.zeros((n_patches, n_particles), np.int64)
+    words = weights.view(np.uint64)
+    key = np.empty(n_particles, np.uint64)
+    for p in range(n_patches):
+        for n in range(n_particles):
+            k = np.uint64(0)  # sums wrap mod 2^64
+            for i in range(m):
+                if masks[p, n, i]:
+                    k += words[i]
+            key[n] = k
+        by_key = np.argsort(key.view(np.int64), kind="mergesort")
+        j = 0
+        for kept in (True, False):
+            for n in by_key:
+                if keep[p, n] == kept:
+                    order[p, j] = n
+                    j += 1
+        last = -1  # position of the current run's first particle
+        for j in range(n_particles):
+            n = order[p, j]
+            masks_sorted[p, j] = masks[p, n]
+            if not keep[p, n]:
+                continue
+            if last >= 0 and key[n] == key[order[p, j - 1]] and _equal_rows(masks[p, n], masks[p, order[p, j - 1]]):
+                counts[p, last] += 1
+            else:
+                first[p, j] = True
+                counts[p, j] = 1
+                last = j
+    return order, masks_sorted, first, counts
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _equal_rows(a: np.ndarray, b: np.ndarray) -> bool:
+    for i in range(a.shape[0]):
+        if a[i] != b[i]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def block_rows(
+    index: np.ndarray, value: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """P symmetric affinities (m, m) from their strict upper-triangle entries index (n, 3)
+    (patch, i, j), value (n,) (each pair once) and unit diagonal on valid (P, m), as the rows p m
+    + i of one CSR matrix in `AffinityEntries.to_sparse`'s coalesced order (rows, then columns
+    ascending): crow (P m + 1,), and per entry its patch, row i, column j and value."""
+    n_patches, m = valid.shape
+    crow = np.zeros(n_patches * m + 1, np.int64)
+    for e in range(len(value)):
+        crow[index[e, 0] * m + index[e, 1] + 1] += 1
+        crow[index[e, 0] * m + index[e, 2] + 1] += 1
+    for r in range(n_patches * m):
+        crow[r + 1] += crow[r] + valid[r // m, r % m]
+    nnz = crow[-1]
+    col = np.empty(nnz, np.int64)
+    out = np.empty(nnz, value.dtype)
+    slot = crow[:-1].copy()
+    for r in range(n_patches * m):
+        if valid[r // m, r % m]:
+            col[slot[r]], out[slot[r]] = r % m, 1.0
+            slot[r] += 1
+    for e in range(len(value)):
+        for a, b in ((1, 2), (2, 1)):
+            r = index[e, 0] * m + index[e, a]
+            col[slot[r]], out[slot[r]] = index[e, b], value[e]
+            slot[r] += 1
+    batch = np.empty(nnz, np.int64)
+    row = np.empty(nnz, np.int64)
+    for r in range(n_patches * m):
+        batch[crow[r] : crow[r + 1]] = r // m
+        row[crow[r] : crow[r + 1]] = r % m
+        for k in range(crow[r] + 1, crow[r + 1]):  # insertion sort of the row by column
+            c, v = col[k], out[k]
+            q = k
+            while q > crow[r] and col[q - 1] > c:
+                col[q], out[q] = col[q - 1], out[q - 1]
+                q -= 1
+            col[q], out[q] = c, v
+    return crow, batch, row, col, out
+
+
+@njit(cache=True, nogil=True)
+def particle_words(base: np.ndarray, n: int, row: np.uint64) -> np.ndarray:
+    """The words mix(base + k row) (S, n) of the sampler's particles k < n for the uint64 words
+    base (S,) (sums and products wrap mod 2^64), in one pass."""
+    out = np.empty((len(base), n), np.uint64)
+    for a in range(len(base)):
+        for k in range(n):
+            out[a, k] = _mix(base[a] + np.uint64(k) * row)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def signed_sigmas(words: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """sigmas[t] x (1 - 2 (words[t, k] & 1)) (T, K) in sigmas' dtype: the noise scale of every
+    step and particle with its sign from the word's low bit (negation is the exact product)."""
+    out = np.empty(words.shape, sigmas.dtype)
+    for t in range(words.shape[0]):
+        for k in range(words.shape[1]):
+            out[t, k] = -sigmas[t] if words[t, k] & np.uint64(1) else sigmas[t]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def initial_particles(words: np.ndarray, coord_keys: np.ndarray, validf: np.ndarray) -> np.ndarray:
+    """The sampler's start x[p, i, n] = U(mix(words[p, n] ^ coord_keys[i])) x validf[p, i] (P, m, N)
+    in validf's dtype (U as `uniform_words`, rounded to the dtype before the product)."""
+    n_patches, m = validf.shape
+    out = np.empty((n_patches, m, words.shape[1]), validf.dtype)
+    for p in range(n_patches):
+        for i in range(m):
+            for n in range(words.shape[1]):
+                out[p, i, n] = _uniform(_mix(words[p, n] ^ coord_keys[i]))
+                out[p, i, n] *= validf[p, i]
     return out

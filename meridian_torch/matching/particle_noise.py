@@ -10,10 +10,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from meridian_torch.matching.kernels import mix_words, uniform_words
+from meridian_torch.matching.kernels import (
+    initial_particles,
+    mix_words,
+    particle_words,
+    signed_sigmas,
+    uniform_words,
+)
 
 __all__ = [
-    "ROW", "add_noise_", "circular_table", "mix", "patch_seeds", "row_words", "slab_table", "step_noise", "uniform",
+    "ROW", "add_noise_", "circular_table", "initial_positions", "mix", "patch_seeds", "row_words", "slab_table",
+    "step_noise", "uniform",
 ]
 
 # Signed int64 constants (torch has no uint64 arithmetic); products and sums wrap mod 2^64.
@@ -56,7 +63,19 @@ def step_words(seeds: Tensor, steps: list[int], n_particles: int) -> Tensor:
     """(P,) seeds -> (S, P, N) int64 random words of the iterations `steps` (one per particle)."""
     step_keys = torch.tensor([wrap64((step + 2) * _GOLDEN) for step in steps], dtype=torch.int64, device=seeds.device)
     base = mix(seeds[None, :] + step_keys[:, None])
-    return mix(base[..., None] + torch.arange(n_particles, device=seeds.device) * ROW)
+    # mix(base[..., None] + arange(N) * ROW) in one compiled pass (three torch passes cost more).
+    words = particle_words(_cpu_words(base).reshape(-1), n_particles, np.uint64(ROW % (1 << 64)))
+    return torch.from_numpy(words.view(np.int64)).reshape(*base.shape, n_particles).to(seeds.device)
+
+
+def initial_positions(seeds: Tensor, validf: Tensor, n_particles: int) -> Tensor:
+    """The sampler's start (P, m, N) for seeds (P,): U[0, 1) (`uniform`) of the words
+    mix(row_words(seeds, -1, N)[p, n] ^ mix(i + ROW)) in validf's dtype, times validf (P, m);
+    in one compiled pass over the P x m x N words."""
+    coord_keys = mix(torch.arange(validf.shape[1], dtype=torch.int64) + ROW)
+    words = _cpu_words(row_words(seeds, -1, n_particles))
+    x = initial_particles(words, _cpu_words(coord_keys), validf.detach().cpu().contiguous().numpy())
+    return torch.from_numpy(x).to(validf.device)
 
 
 def uniform(z: Tensor, dtype: torch.dtype) -> Tensor:
@@ -102,8 +121,9 @@ def step_noise(seeds: Tensor, sigmas: list[float], n_particles: int, dtype: torc
     entry would cost as much as the drift."""
     words = step_words(seeds, list(range(len(sigmas))), n_particles)
     offsets = srl(words[..., 0], 1) % _TABLE_SIZE
-    sign = 1.0 - 2.0 * (words & 1).to(dtype)
-    return offsets, torch.tensor(sigmas, dtype=dtype, device=seeds.device)[:, None, None] * sign
+    T, P, N = words.shape
+    scale = signed_sigmas(_cpu_words(words).reshape(T, P * N), torch.tensor(sigmas, dtype=dtype).numpy())
+    return offsets, torch.from_numpy(scale).reshape(words.shape).to(seeds.device)
 
 
 def add_noise_(g: Tensor, slabs: Tensor, offsets: Tensor, scale: Tensor) -> Tensor:

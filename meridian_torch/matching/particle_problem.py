@@ -11,6 +11,7 @@ from torch import Tensor
 
 from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.matching.affinity import AffinityEntries
+from meridian_torch.matching.kernels import renumbered_entries, support_walks
 
 __all__ = ["SamplerProblem", "concat_problems", "sampler_problem", "support_pruning"]
 
@@ -61,34 +62,49 @@ def _upper_entries(M: Tensor, valid: Tensor) -> AffinityEntries:
     return AffinityEntries(M.indices()[:, upper].T, M.values()[upper], valid)
 
 
-def _prune(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int) -> SamplerProblem:
-    """`support_pruning` as a `SamplerProblem` (the kept entries without their diagonal)."""
+def _prune(
+    M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, k: int, compiled: bool | None = None
+) -> SamplerProblem:
+    """`support_pruning` as a `SamplerProblem` (the kept entries without their diagonal).
+    `compiled` (default: on CPU tensors) walks the entries in compiled passes (`kernels.support_walks`,
+    `kernels.renumbered_entries`; as ~15 torch ops over a match's ~400k entries they took 5 % of
+    it), else in torch's (other devices): the same numbers."""
     n_patches, m = valid.shape
     entries = M if isinstance(M, AffinityEntries) else _upper_entries(M, valid)
-    (b, i, j), value = entries.index.T, entries.value
+    index, value = entries.index, entries.value
     validf = valid.to(value.dtype)
+    compiled = valid.device.type == "cpu" if compiled is None else compiled
+    if compiled:
+        degree, walk = (torch.from_numpy(a) for a in support_walks(
+            index.contiguous().numpy(), value.contiguous().numpy(), validf.contiguous().numpy()))
+    else:
+        (b, i, j) = index.T
 
-    def times(x: Tensor) -> Tensor:  # M' x for x (P, m), from the upper-triangle entries
-        out = torch.zeros(n_patches * m, dtype=x.dtype, device=x.device)
-        out.index_add_(0, b * m + i, value * x[b, j]).index_add_(0, b * m + j, value * x[b, i])
-        return out.view(n_patches, m)
+        def times(x: Tensor) -> Tensor:  # M' x for x (P, m), from the upper-triangle entries
+            out = torch.zeros(n_patches * m, dtype=x.dtype, device=x.device)
+            out.index_add_(0, b * m + i, value * x[b, j]).index_add_(0, b * m + j, value * x[b, i])
+            return out.view(n_patches, m)
 
-    degree = times(validf) * validf
-    walk = times(degree)
+        degree = times(validf) * validf
+        walk = times(degree)
     score = walk.masked_fill(~valid | (degree <= 0), float("-inf"))
     k = min(k, m)
     top = torch.sort(score, dim=1, descending=True, stable=True).indices[:, :k]
-    index = torch.sort(top, dim=1).values
-    kept_valid = torch.isfinite(score.gather(1, index))
-    index = index.masked_fill(~kept_valid, m)
+    kept_index = torch.sort(top, dim=1).values
+    kept_valid = torch.isfinite(score.gather(1, kept_index))
+    kept_index = kept_index.masked_fill(~kept_valid, m)
     new_of_old = torch.full((n_patches, m + 1), -1, dtype=torch.int64, device=valid.device)
-    new_of_old.scatter_(1, index, torch.arange(k, device=valid.device).expand(n_patches, k).contiguous())
+    new_of_old.scatter_(1, kept_index, torch.arange(k, device=valid.device).expand(n_patches, k).contiguous())
     new_of_old[:, m] = -1
-    ni, nj = new_of_old[b, i], new_of_old[b, j]
-    use = (ni >= 0) & (nj >= 0)
-    kept = AffinityEntries(torch.stack([b[use], ni[use], nj[use]], 1), value[use], kept_valid)
-    pairs_kept = torch.cat([pairs, pairs.new_full((n_patches, 1, 2), -1)], 1).gather(1, index[..., None].expand(-1, -1, 2))
-    return SamplerProblem(kept, pairs_kept, index, m)
+    if compiled:
+        kept = AffinityEntries(*(torch.from_numpy(a) for a in renumbered_entries(
+            index.contiguous().numpy(), value.contiguous().numpy(), new_of_old.numpy())), kept_valid)
+    else:
+        ni, nj = new_of_old[b, i], new_of_old[b, j]
+        use = (ni >= 0) & (nj >= 0)
+        kept = AffinityEntries(torch.stack([b[use], ni[use], nj[use]], 1), value[use], kept_valid)
+    pairs_kept = torch.cat([pairs, pairs.new_full((n_patches, 1, 2), -1)], 1).gather(1, kept_index[..., None].expand(-1, -1, 2))
+    return SamplerProblem(kept, pairs_kept, kept_index, m)
 
 
 def sampler_problem(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, cfg: ParticleConfig) -> SamplerProblem:

@@ -11,9 +11,10 @@ pairs below the affinity threshold alike) and d = the patch's number of valid as
 
 Batching: all P patches and all N particles live in one (P, N, m) tensor and advance together.
 Because Cb = J - 1[M != 0] on the valid block, x M_d = x A - d * sum(x) with A = M + d 1[M != 0]
-sharing M's sparsity, so a sparse COO affinity stays sparse and each step is one batched
-product. Every `check_interval` iterations a patch whose EMA of the mean objective has settled
-for `patience` checks is frozen and dropped from the working batch.
+sharing M's sparsity, so a sparse affinity stays sparse (the rows of one block-diagonal CSR
+matrix, built once per batch) and each step is one batched product. Every `check_interval`
+iterations a patch whose EMA of the mean objective has settled for `patience` checks is frozen
+and dropped from the working batch.
 
 Randomness is counter based: a 64-bit mix (splitmix64 finaliser) of (patch seed, iteration,
 particle, association index). The per-patch seeds are drawn from the caller's generator, so
@@ -27,7 +28,10 @@ Cost: on the CPU the loop and the rounding are compiled (`matching.kernels`): on
 particles at a time, in cache, each step in a few fused passes (3.4x less time than the torch
 loop, which stays for other devices: every step in place on the (P, m, N) buffers). Either way
 `match_submap` samples the pruned problems of all its patch chunks together
-(`particle_problem.concat_problems`), so the per-call overhead is paid once per match.
+(`particle_problem.concat_problems`), so the per-call overhead is paid once per match. On the
+CPU the bookkeeping around the loop is compiled too (the CSR rows, the particles' words, noise
+signs and start, the merge of identical sets): as torch ops over the P x m x N words and masks
+they cost a quarter of the time of the loop.
 
 Rounding (reference DSD_HEU): k = round(x' M_d x) clamped to [0, m_valid], the set is the k
 largest entries of x. Sets smaller than `min_set_size` or using a ground or aerial primitive
@@ -59,17 +63,14 @@ from torch import Tensor
 from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.matching.affinity import AffinityEntries
-from meridian_torch.matching.kernels import langevin_patches, round_particles
+from meridian_torch.matching.kernels import block_rows, langevin_patches, merge_sets, round_particles
 from meridian_torch.matching.particle_noise import (
-    ROW,
     add_noise_,
     circular_table,
-    mix,
+    initial_positions,
     patch_seeds,
-    row_words,
     slab_table,
     step_noise,
-    uniform,
 )
 from meridian_torch.matching.particle_problem import SamplerProblem, sampler_problem
 
@@ -100,62 +101,86 @@ class InlierSets:
     n_particles: int
 
 
-class _BlockOperator:
-    """P symmetric (m, m) matrices as one block-diagonal CSR matrix: y = A x for x (P, m, N) in
-    one sparse product. A COO `bmm` is ~6x slower on CPU and a dense one does 20x the work at
-    the ~5 % fill of affinities; dense inputs are converted."""
+@dataclass(frozen=True)
+class _BlockRows:
+    """P symmetric (m, m) matrices of one sparsity as the rows p m + i of one block-diagonal CSR
+    matrix (P m, P m), columns ascending in each row (a coalesced COO's order).
 
-    def __init__(self, A: Tensor) -> None:
-        A = (A if A.is_sparse else A.to_sparse()).coalesce()
-        index = A.indices()
-        self.m = int(A.shape[1])
-        self.batch, self.row, self.col, self.values = index[0], index[1], index[2], A.values()
-        self.n_batch = int(A.shape[0])
-        self._build(torch.arange(self.n_batch, device=A.device))
+    Attributes:
+        crow: (P m + 1,) int64 row offsets.
+        batch, row, col: (nnz,) int64 patch p, row i and column j of each entry.
+        value: (nnz,) the entries.
+        m: the size of a block.
+    """
 
-    def _build(self, keep: Tensor) -> None:
-        new_id = torch.full((self.n_batch,), -1, dtype=torch.int64, device=keep.device)
+    crow: Tensor
+    batch: Tensor
+    row: Tensor
+    col: Tensor
+    value: Tensor
+    m: int
+
+    def csr(self) -> Tensor:
+        """The matrix as a sparse CSR tensor (P m, P m)."""
+        size = len(self.crow) - 1
+        with warnings.catch_warnings():  # "sparse CSR support is in beta"
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.sparse_csr_tensor(self.crow, self.batch * self.m + self.col, self.value, (size, size),
+                                           check_invariants=False)
+
+    def select(self, keep: Tensor) -> _BlockRows:
+        """The blocks `keep` (ascending indices), renumbered 0 .. len(keep) - 1."""
+        new_id = torch.full(((len(self.crow) - 1) // max(self.m, 1),), -1, dtype=torch.int64, device=keep.device)
         new_id[keep] = torch.arange(keep.numel(), device=keep.device)
         b = new_id[self.batch]
         use = b >= 0
-        # Coalesced COO is sorted by (batch, row, col); keeping batches in order keeps it sorted.
-        rows = (b * self.m + self.row)[use]
+        # Rows are sorted by (batch, row, col); keeping batches in order keeps them sorted.
+        batch, row = b[use], self.row[use]
         size = keep.numel() * self.m
         crow = torch.zeros(size + 1, dtype=torch.int64, device=keep.device)
-        crow[1:] = torch.cumsum(torch.bincount(rows, minlength=size), 0)
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            self.csr = torch.sparse_csr_tensor(
-                crow, (b * self.m + self.col)[use], self.values[use], (size, size), check_invariants=False
-            )
+        crow[1:] = torch.cumsum(torch.bincount(batch * self.m + row, minlength=size), 0)
+        return _BlockRows(crow, batch, row, self.col[use], self.value[use], self.m)
+
+
+def _block_rows(entries: AffinityEntries, compiled: bool | None = None) -> _BlockRows:
+    """The affinity of `entries` (unit diagonal on its valid associations) as `_BlockRows`.
+    `compiled` (default: on CPU tensors) sorts the entries into rows in one compiled pass
+    (`kernels.block_rows`), else through the coalesced COO (other devices): the same rows
+    (entries are unique, as `AffinityEntries` promises; a COO would sum repeats)."""
+    m = entries.valid.shape[1]
+    if entries.valid.device.type == "cpu" if compiled is None else compiled:
+        arrays = [x.contiguous().numpy() for x in (entries.index, entries.value, entries.valid)]
+        return _BlockRows(*(torch.from_numpy(a) for a in block_rows(*arrays)), m)
+    M = entries.to_sparse()
+    batch, row, col = M.indices()
+    n_rows = len(entries.valid) * m
+    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=batch.device)
+    crow[1:] = torch.cumsum(torch.bincount(batch * m + row, minlength=n_rows), 0)
+    return _BlockRows(crow, batch, row, col, M.values(), m)
+
+
+class _BlockOperator:
+    """P symmetric (m, m) matrices as one block-diagonal CSR matrix: y = A x for x (P, m, N) in
+    one sparse product. A COO `bmm` is ~6x slower on CPU and a dense one does 20x the work at
+    the ~5 % fill of affinities."""
+
+    def __init__(self, rows: _BlockRows) -> None:
+        self.rows = rows
+        self.csr = rows.csr()
 
     def keep(self, keep: Tensor) -> None:
         """Restrict to the batch entries `keep` (ascending indices into the current batch)."""
-        self.batch, self.row, self.col, self.values = _filter(self.batch, keep, self.row, self.col, self.values)
-        self.n_batch = keep.numel()
-        self._build(torch.arange(self.n_batch, device=keep.device))
+        self.rows = self.rows.select(keep)
+        self.csr = self.rows.csr()
 
     def __call__(self, x: Tensor) -> Tensor:
         P, m, N = x.shape
         return (self.csr @ x.reshape(P * m, N)).reshape(P, m, N)
 
 
-def _filter(batch: Tensor, keep: Tensor, *fields: Tensor) -> tuple[Tensor, ...]:
-    """COO entries whose batch is in `keep`, with batch ids renumbered to positions in `keep`."""
-    new_id = torch.full((int(batch.max()) + 1 if batch.numel() else 1,), -1, dtype=torch.int64, device=batch.device)
-    new_id[keep] = torch.arange(keep.numel(), device=keep.device)
-    b = new_id[batch]
-    use = b >= 0
-    return (b[use],) + tuple(f[use] for f in fields)
-
-
-def _penalised(M: Tensor, d: Tensor) -> Tensor:
+def _penalised(M: _BlockRows, d: Tensor) -> _BlockRows:
     """A = M + d 1[M != 0] (same sparsity as M); x M_d = A x - d sum(x) on valid coordinates."""
-    M = (M if M.is_sparse else M.to_sparse()).coalesce()
-    values = M.values()
-    return torch.sparse_coo_tensor(
-        M.indices(), values + d[M.indices()[0]] * (values != 0), M.shape, check_invariants=False, is_coalesced=True
-    )
+    return dataclasses.replace(M, value=M.value + d[M.batch] * (M.value != 0))
 
 
 def _drift(A: _BlockOperator, d: Tensor, validf: Tensor, x: Tensor) -> Tensor:
@@ -171,37 +196,30 @@ def _noise_schedule(cfg: ParticleConfig) -> list[float]:
 
 @torch.no_grad()
 def _run_dynamics(
-    A: Tensor, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor, compiled: bool | None = None
+    A: _BlockRows, d: Tensor, valid: Tensor, cfg: ParticleConfig, seeds: Tensor, compiled: bool | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Langevin loop for all patches on the penalised affinity A (sparse COO, coalesced); returns
-    final x (P, m, N) and iterations (P,). `compiled` (default: on CPU tensors) runs the compiled
-    loop, else torch's (other devices)."""
-    n_patches, m = valid.shape
-    n_particles = cfg.n_particles
+    """Langevin loop for all patches on the penalised affinity A; returns final x (P, m, N) and
+    iterations (P,). `compiled` (default: on CPU tensors) runs the compiled loop, else torch's
+    (other devices)."""
     dtype, device = d.dtype, d.device
     validf = valid.to(dtype)
-    coord_keys = mix(torch.arange(m, device=device, dtype=torch.int64) + ROW)
-    init_words = mix(row_words(seeds, -1, n_particles)[:, None, :] ^ coord_keys[None, :, None])
-    x = uniform(init_words, dtype) * validf[:, :, None]
-    offsets, scale = step_noise(seeds, _noise_schedule(cfg), n_particles, dtype)
+    x = initial_positions(seeds, validf, cfg.n_particles)
+    offsets, scale = step_noise(seeds, _noise_schedule(cfg), cfg.n_particles, dtype)
     if device.type == "cpu" if compiled is None else compiled:
         return _compiled_dynamics(A, d, validf, x, offsets, scale, cfg)
     return _torch_dynamics(_BlockOperator(A), d, validf, x, offsets, scale, cfg)
 
 
 def _compiled_dynamics(
-    A: Tensor, d: Tensor, validf: Tensor, x: Tensor, offsets: Tensor, scale: Tensor, cfg: ParticleConfig
+    A: _BlockRows, d: Tensor, validf: Tensor, x: Tensor, offsets: Tensor, scale: Tensor, cfg: ParticleConfig
 ) -> tuple[Tensor, Tensor]:
     """`langevin_patches` on CPU tensors, the patches dealt round-robin to torch's CPU threads
     (each patch's steps are independent of the others')."""
     n_patches, m = validf.shape
-    batch, row, col = A.indices()
-    crow = torch.zeros(n_patches * m + 1, dtype=torch.int64)
-    crow[1:] = torch.cumsum(torch.bincount(batch * m + row, minlength=n_patches * m), 0)
     iterations = torch.empty(n_patches, dtype=torch.int64)
     table = circular_table(m * cfg.n_particles, x.dtype, x.device)
     constants = torch.tensor([cfg.step_size, cfg.alpha, 1.0 - cfg.alpha, 1e-6, 0.0], dtype=x.dtype)
-    arrays = [t.numpy() for t in (crow, col, A.values(), d, validf, x, iterations, table, offsets, scale, constants)]
+    arrays = [t.numpy() for t in (A.crow, A.col, A.value, d, validf, x, iterations, table, offsets, scale, constants)]
 
     def run(patches: Tensor) -> None:
         langevin_patches(patches.numpy(), *arrays, cfg.noise, cfg.rmsprop, cfg.early_stop, cfg.check_interval,
@@ -269,10 +287,9 @@ def _torch_dynamics(
     return x_out, iterations
 
 
-def _rounded_sets(A: Tensor, d: Tensor, valid: Tensor, pairs: Tensor, x: Tensor, rounding: str) -> tuple[Tensor, Tensor, Tensor]:
+def _rounded_sets(A: _BlockRows, d: Tensor, valid: Tensor, pairs: Tensor, x: Tensor, rounding: str) -> tuple[Tensor, Tensor, Tensor]:
     """Each particle x (P, m, N) rounded to a set (`_select_sets`) of its round(x' M_d x)
-    largest valid entries, or its support ('support' rounding); A is the penalised affinity
-    (sparse COO)."""
+    largest valid entries, or its support ('support' rounding); A is the penalised affinity."""
     support = rounding == "support"
     k = torch.zeros(x.shape[0], x.shape[2], dtype=torch.int64, device=x.device)
     if not support:
@@ -316,35 +333,47 @@ def _one_to_one(masks: Tensor, pairs: Tensor) -> Tensor:
     return ok
 
 
-def _merge(masks: Tensor, keep: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _merge(masks: Tensor, keep: Tensor, compiled: bool | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Merge identical sets per patch.
 
-    Returns (order (P, N) particle permutation, first (P, N) bool marking the first particle of
-    each group of identical kept sets in that order, counts (P, N) group sizes at those firsts).
+    Returns (order (P, N) particle permutation, the masks in that order (P, N, m), first (P, N)
+    bool marking the first particle of each group of identical kept sets in that order, counts
+    (P, N) group sizes at those firsts). `compiled` (default: on CPU tensors) hashes, sorts and
+    compares in one compiled pass per patch (`kernels.merge_sets`), else with torch's sorts
+    (other devices): the same integers.
     """
     n_patches, n_particles, m = masks.shape
     gen = torch.Generator(device=masks.device).manual_seed(_SET_HASH_SEED)
     weights = torch.randint(-(1 << 62), 1 << 62, (m,), generator=gen, device=masks.device)
+    if masks.device.type == "cpu" if compiled is None else compiled:
+        order, masks_s, first, counts = merge_sets(masks.contiguous().numpy(), keep.contiguous().numpy(), weights.numpy())
+        return torch.from_numpy(order), torch.from_numpy(masks_s), torch.from_numpy(first), torch.from_numpy(counts)
     key = (masks.to(torch.int64) * weights).sum(-1)  # wraps mod 2^64: a random linear hash
     order = torch.sort(key, dim=1, stable=True).indices
     # Kept sets first, each run of equal keys contiguous inside them.
     order = order.gather(1, torch.sort((~keep).gather(1, order).to(torch.int8), dim=1, stable=True).indices)
     key_s, keep_s = key.gather(1, order), keep.gather(1, order)
-    masks_s = masks.gather(1, order[..., None].expand_as(masks))
+    masks_s = _rows(masks, order)
     # Exact verification: a key collision between different sets never merges them.
     same = (key_s[:, 1:] == key_s[:, :-1]) & (masks_s[:, 1:] == masks_s[:, :-1]).all(-1) & keep_s[:, 1:]
     first = torch.cat([keep_s[:, :1], keep_s[:, 1:] & ~same], dim=1)
     group = (torch.cumsum(first.to(torch.int64), dim=1) - 1).clamp_min(0)
     sizes = torch.zeros_like(group).scatter_add_(1, group, keep_s.to(torch.int64))
     counts = torch.where(first, sizes.gather(1, group), 0)
-    return order, first, counts
+    return order, masks_s, first, counts
+
+
+def _rows(x: Tensor, index: Tensor) -> Tensor:
+    """x[p, index[p, j]] (P, J, ...) for x (P, N, ...): whole rows by indexing (a gather through
+    an index expanded over the rows costs ~3x)."""
+    return x[torch.arange(len(x), device=x.device)[:, None], index]
 
 
 @torch.no_grad()
 def sample_problem(problem: SamplerProblem, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:
     """Inlier sets of a `SamplerProblem` with per-patch seeds (P,), masks over its m associations."""
     valid = problem.entries.valid
-    kept = _sample(problem.entries.to_sparse(), valid, problem.pairs, cfg, seeds.to(device=valid.device, dtype=torch.int64))
+    kept = _sample(_block_rows(problem.entries), valid, problem.pairs, cfg, seeds.to(device=valid.device, dtype=torch.int64))
     masks = torch.zeros(kept.masks.shape[:2] + (problem.m + 1,), dtype=torch.bool, device=valid.device)
     masks.scatter_(2, problem.index[:, None, :].expand_as(kept.masks), kept.masks)
     return dataclasses.replace(kept, masks=masks[..., : problem.m])
@@ -387,28 +416,26 @@ def sample_inlier_sets(
     return sample_problem(problem, cfg, seeds)
 
 
-def _sample(M: Tensor, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:
+def _sample(M: _BlockRows, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, seeds: Tensor) -> InlierSets:
     """`sample_inlier_sets` on the (possibly pruned) problem."""
-    n_patches, m = valid.shape
-    dtype = M.dtype
+    dtype = M.value.dtype
     d = valid.to(dtype).sum(-1)
     penalised = _penalised(M, d)
     x, iterations = _run_dynamics(penalised, d, valid, cfg, seeds)
 
     masks, size, one_to_one = _rounded_sets(penalised, d, valid, pairs, x, cfg.rounding)
     keep = (size >= cfg.min_set_size) & one_to_one
-    order, first, counts = _merge(masks, keep)
+    order, masks_s, first, counts = _merge(masks, keep)
 
     # Rank the unique sets by J, padding last; S = the most unique sets any patch has (at least
     # one padded column, so that downstream gathers never see an empty axis).
     n_sets = max(int(first.sum(1).max()), 1)
-    masks_s = masks.gather(1, order[..., None].expand_as(masks))
     maskf = masks_s.to(dtype)
     J = (_BlockOperator(M)(maskf.transpose(1, 2)).transpose(1, 2) * maskf).sum(-1) / size.gather(1, order).clamp_min(1).to(dtype)
     rank = torch.sort(J.masked_fill(~first, float("-inf")), dim=1, descending=True, stable=True).indices[:, :n_sets]
     out_valid = first.gather(1, rank)
     return InlierSets(
-        masks=masks_s.gather(1, rank[..., None].expand(-1, -1, m)) & out_valid[..., None],
+        masks=_rows(masks_s, rank) & out_valid[..., None],
         counts=counts.gather(1, rank),
         objective=J.gather(1, rank).masked_fill(~out_valid, 0.0),
         valid=out_valid,
