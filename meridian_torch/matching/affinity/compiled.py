@@ -233,6 +233,42 @@ def _line_line_score(fields, k, rotated, separation, lever_arm):
     return math.sqrt(_kernel(c_theta, k.sigma_theta, k.eps_theta, k) * s_t)
 
 
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _gathered(out, table, base, cols, col_offset, lo, hi):
+    """out[j] = table[base + cols[j - col_offset]] for j in [lo, hi): one row primitive's table
+    row, laid out by column (association) so that the gate reads it contiguously."""
+    # Indices are unsigned (all are >= 0) so that numba skips its wraparound of negative ones.
+    for j in range(lo, hi):
+        out[j] = table[uint64(base + cols[uint64(j - col_offset)])]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _passing(mask, q, a_gate, g_gate, a_gap, g_gap, tol, gap_tol, with_gap):
+    """mask[t] = whether column t of the rows (n,) passes the gate: q != 0 and the aerial and
+    ground gate values within tol (and, with_gap, the gap lengths within gap_tol). Branch free
+    over contiguous rows indexed from 0 (no wraparound of negative indices): it vectorises."""
+    if with_gap:
+        for t in range(q.shape[0]):
+            mask[t] = (q[t] != 0) & (abs(a_gate[t] - g_gate[t]) <= tol) & (abs(a_gap[t] - g_gap[t]) <= gap_tol)
+    else:
+        for t in range(q.shape[0]):
+            mask[t] = (q[t] != 0) & (abs(a_gate[t] - g_gate[t]) <= tol)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _passed_columns(columns, mask, words, lo, n):
+    """The columns lo + t of mask[t] != 0, t < n, in ascending order into `columns`; their
+    count. words views mask as uint64: few pairs pass (3-7 %), so most words are skipped whole."""
+    mask[n : (n + 7) & ~7] = 0
+    n_passed = 0
+    for w in range((n + 7) >> 3):
+        if words[w] != 0:
+            for t in range(8 * w, 8 * w + 8):
+                columns[n_passed] = lo + t
+                n_passed += mask[t]
+    return n_passed
+
+
 @njit(cache=True, nogil=True)
 def _span_entries(spans, arr, k, rotated, separation, lever_arm):
     """Entries M = cbrt(s q_i q_j) > affinity_eps of the spans (S, 5) (r0, r1, c0, c1, kind code),
@@ -246,8 +282,20 @@ def _span_entries(spans, arr, k, rotated, separation, lever_arm):
     index = np.empty(3 * _MIN_CAPACITY, np.int64)
     value = np.empty(_MIN_CAPACITY, q.dtype)
     n = 0
-    columns = np.empty(q.shape[1], np.int64)  # the columns of one row that pass the gate
+    m = q.shape[1]
+    # The gate of (i, j) compares a_gate[key_a(row prim of i, col prim of j)] with the ground's:
+    # gathered per pair that is 4 scattered reads. Instead each row primitive's table row is
+    # gathered once per span and patch into column order (its gate value and, for lines, gap
+    # length for every column j), which all rows of that primitive then read contiguously.
+    a_rows_of = np.empty((2, max(n_ap, n_al), m), q.dtype)
+    g_rows_of = np.empty((2, max(n_gp, n_gl), m), q.dtype)
+    a_stamp = np.full(max(n_ap, n_al), -1, np.int64)  # the (span, patch) a row was gathered for
+    g_stamp = np.full(max(n_gp, n_gl), -1, np.int64)
+    mask = np.empty(8 * ((m + 15) // 8), np.uint8)  # one row's gate results, padded to words
+    words = mask.view(np.uint64)
+    columns = np.empty(m + 8, np.int64)  # the columns of one row that pass the gate (+ a word's slack)
     a_vx = a_vy = g_vx = g_vy = k.zero  # vector fields, read only with a rotation prior
+    stamp = 0
     for s in range(spans.shape[0]):
         r0, r1, c0, c1, kind = spans[s]
         # As in `blocks._gate`, each side's key of (i, j) is row(i) * n_cols + col(j): (patch,
@@ -264,31 +312,35 @@ def _span_entries(spans, arr, k, rotated, separation, lever_arm):
             a_rows, g_rows, row_offset, n_a_rows = a_ln, g_ln, mp, n_al
             a_cols, g_cols, col_offset, n_a_cols, n_g_cols = a_ln, g_ln, mp, n_al, n_gl
             a_gate, g_gate, a_tab, g_tab, tol = arr.a_ll_gate, arr.g_ll_gate, arr.a_ll, arr.g_ll, k.gate_theta
+        # s_t's window on the gap lengths of line pairs too (exact without a prior; the slack
+        # covers the prior's rotation of the ground vectors): drops ~90 % of the line pairs
+        # that pass the angle gate, before they are scored.
+        with_gap = kind == _LL
         a_gap, g_gap = a_tab[1], g_tab[1]
         for b in range(q.shape[0]):
+            stamp += 1
             a_cols_b, g_cols_b, q_b = a_cols[b], g_cols[b], q[b]
             for i in range(r0, r1):
                 q_i = q[b, i]
-                if q_i == 0:  # the product is 0 (padding, or a cosine below the window)
+                lo = max(c0, i + 1)
+                if q_i == 0 or lo >= c1:  # q_i = 0: the product is 0 (padding, or a cosine below the window)
                     continue
-                a_row = (b * n_a_rows + a_rows[b, i - row_offset]) * n_a_cols
-                g_row = g_rows[b, i - row_offset] * n_g_cols
-                # The gate without branches (a quarter of the pairs pass, at random): 2x faster.
-                # Indices are unsigned (all are >= 0) so that numba skips its wraparound of
-                # negative ones, which cost a third of the time here.
-                n_passed = 0
-                for j in range(max(c0, i + 1), c1):
-                    col = uint64(j - col_offset)
-                    a_key, g_key = uint64(a_row + a_cols_b[col]), uint64(g_row + g_cols_b[col])
-                    passed = (q_b[uint64(j)] != 0) & (abs(a_gate[a_key] - g_gate[g_key]) <= tol)
-                    if kind == _LL:
-                        # s_t's window on the gap lengths too (exact without a prior; the slack
-                        # covers the prior's rotation of the ground vectors): drops ~90 % of the
-                        # line pairs that pass the angle gate, before they are scored.
-                        passed &= abs(a_gap[a_key] - g_gap[g_key]) <= k.gate_t
-                    columns[n_passed] = j
-                    n_passed += passed
-                for c in range(n_passed):
+                a_prim, g_prim = a_rows[b, i - row_offset], g_rows[b, i - row_offset]
+                a_row, g_row = (b * n_a_rows + a_prim) * n_a_cols, g_prim * n_g_cols
+                # A row's lo only grows with i: the first gather of a primitive covers its later rows.
+                if a_stamp[a_prim] != stamp:
+                    a_stamp[a_prim] = stamp
+                    _gathered(a_rows_of[0, a_prim], a_gate, a_row, a_cols_b, col_offset, lo, c1)
+                    if with_gap:
+                        _gathered(a_rows_of[1, a_prim], a_gap, a_row, a_cols_b, col_offset, lo, c1)
+                if g_stamp[g_prim] != stamp:
+                    g_stamp[g_prim] = stamp
+                    _gathered(g_rows_of[0, g_prim], g_gate, g_row, g_cols_b, col_offset, lo, c1)
+                    if with_gap:
+                        _gathered(g_rows_of[1, g_prim], g_gap, g_row, g_cols_b, col_offset, lo, c1)
+                _passing(mask, q_b[lo:c1], a_rows_of[0, a_prim, lo:c1], g_rows_of[0, g_prim, lo:c1],
+                         a_rows_of[1, a_prim, lo:c1], g_rows_of[1, g_prim, lo:c1], tol, k.gate_t, with_gap)
+                for c in range(_passed_columns(columns, mask, words, lo, c1 - lo)):
                     j = columns[c]
                     a_key, g_key = a_row + a_cols[b, j - col_offset], g_row + g_cols[b, j - col_offset]
                     if kind == _PP:
