@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -20,7 +21,12 @@ from meridian_torch.matching.affinity import (
     unary_scores,
 )
 from meridian_torch.matching.affinity.blocks import _entries
-from meridian_torch.matching.affinity.compiled import _compiled_line_pair_table
+from meridian_torch.matching.affinity.compiled import (
+    _compiled_line_pair_table,
+    _gathered,
+    _passed_columns,
+    _passing,
+)
 from meridian_torch.matching.affinity.gather import _PARALLEL_GATE_OFFSET, _gate_tables, _gather
 from meridian_torch.matching.affinity.lines import _closest_params, _line_params
 from meridian_torch.matching.affinity.scores import _GATE_SLACK, _line_pair_table
@@ -434,6 +440,47 @@ def test_compiled_entries_equal_torch_path(seed: int, dtype: torch.dtype) -> Non
                 # On the CPU the public entry point takes the compiled path.
                 default = affinity_entries(g, batch, assoc, cfg, rotation_prior=prior)
                 assert torch.equal(default.index, index_c) and torch.equal(default.value, value_c)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_gate_steps_equal_numpy(dtype: type) -> None:
+    """The compiled gate's steps give numpy's definitions: the gather of a row primitive's table
+    row by column (fancy indexing), the test of a row (the comparisons) and its passing columns
+    (nonzero), for rows of every length around the mask's 8-byte words, with q = 0 and NaN
+    values, rows where none and where all pass."""
+    rng = np.random.default_rng(7)
+    table = rng.uniform(0, 3, 60).astype(dtype)
+    table[::9] = np.nan
+    for n in (0, 1, 5, 7, 8, 9, 16, 17, 64, 65, 203):
+        for lo, col_offset in ((0, 0), (3, 0), (11, 4)):
+            hi, width = lo + n, lo + n + 5
+            cols = rng.integers(0, 40, width - col_offset)
+            out = np.full(width, -1.0, dtype)
+            _gathered(out, table, 13, cols, col_offset, lo, hi)
+            expected = np.full(width, -1.0, dtype)
+            expected[lo:hi] = table[13 + cols[lo - col_offset : hi - col_offset]]
+            np.testing.assert_array_equal(out, expected)  # NaN where NaN, nothing else written
+        for passing in ("some", "none", "all"):
+            q, a_gate, g_gate, a_gap, g_gap = rng.uniform(0, 3, (5, n)).astype(dtype)
+            q[rng.random(n) < 0.2] = 0
+            a_gate[rng.random(n) < 0.1] = np.nan
+            g_gap[rng.random(n) < 0.1] = np.nan
+            tol = {"some": 1.0, "none": -1.0, "all": np.inf}[passing]
+            if passing == "all":
+                q[:] = 1
+                a_gate[:], g_gap[:] = 0, 0
+            for with_gap in (False, True):
+                mask = np.full(8 * ((n + 15) // 8), 1, np.uint8)  # stale bytes past n
+                _passing(mask, q, a_gate, g_gate, a_gap, g_gap, dtype(tol), dtype(tol), with_gap)
+                passed = (q != 0) & (np.abs(a_gate - g_gate) <= tol)
+                if with_gap:
+                    passed &= np.abs(a_gap - g_gap) <= tol
+                np.testing.assert_array_equal(mask[:n], passed)
+                columns = np.full(n + 8, -1, np.int64)
+                count = _passed_columns(columns, mask, mask.view(np.uint64), 100, n)
+                np.testing.assert_array_equal(columns[:count], 100 + np.flatnonzero(passed))
+                if passing != "some":
+                    assert count == (n if passing == "all" else 0)
 
 
 def same_numbers(x: torch.Tensor, y: torch.Tensor) -> bool:
