@@ -23,9 +23,12 @@ from meridian_torch.matching.affinity import (
 from meridian_torch.matching.affinity.blocks import _entries
 from meridian_torch.matching.affinity.compiled import (
     _compiled_line_pair_table,
+    _constants,
     _gathered,
+    _kernel,
     _passed_columns,
     _passing,
+    _point_pair_score,
 )
 from meridian_torch.matching.affinity.gather import _PARALLEL_GATE_OFFSET, _gate_tables, _gather
 from meridian_torch.matching.affinity.lines import _closest_params, _line_params
@@ -481,6 +484,26 @@ def test_compiled_gate_steps_equal_numpy(dtype: type) -> None:
                 np.testing.assert_array_equal(columns[:count], 100 + np.flatnonzero(passed))
                 if passing != "some":
                     assert count == (n if passing == "all" else 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_gap_score_equals_point_pair_score(dtype: type) -> None:
+    """The unrotated line-line s_t of the compiled kernel scores |gap| directly: bit for bit
+    `_point_pair_score` of the vectors (gap, 0) (whose lengths are libm's hypot(gap, 0)), on
+    random gaps around the eps_t window and on zeros, subnormals, huge, infinite and NaN ones."""
+    k = _constants(AffinityConfig(), np.dtype(dtype))
+    rng = np.random.default_rng(3)
+    info = np.finfo(dtype)
+    special = np.array([0.0, -0.0, info.smallest_subnormal, info.tiny, 1.0, 2.0, 3.0, info.max, np.inf, -np.inf, np.nan], dtype)
+    a = np.concatenate([rng.uniform(0, 40, 400).astype(dtype), np.repeat(special, len(special))])
+    g = np.concatenate([a[:400] + rng.uniform(-2.5, 2.5, 400).astype(dtype), np.tile(special, len(special))])
+    deltas = rng.choice(np.array([0.0, 0.3, 7.0], dtype), len(a))
+    for a_gap, g_gap, delta in zip(a, g, deltas):
+        old = _point_pair_score(a_gap, k.zero, g_gap, k.zero, delta, k, False, False)
+        with np.errstate(invalid="ignore"):  # inf - inf
+            new = _kernel(abs(abs(a_gap) - abs(g_gap)), k.sigma_t + delta, k.eps_t, k)
+        assert np.array(old, dtype).tobytes() == np.array(new, dtype).tobytes() or (math.isnan(old) and math.isnan(new))
+    assert sum(_kernel(abs(x - y), k.sigma_t, k.eps_t, k) > 0 for x, y in zip(a[:400], g[:400])) > 100  # not all 0
 
 
 def same_numbers(x: torch.Tensor, y: torch.Tensor) -> bool:

@@ -227,7 +227,9 @@ def _line_line_score(fields, k, rotated, separation, lever_arm):
     if rotated:
         s_t = _point_pair_score(a_vx, a_vy, g_vx, g_vy, delta, k, True, False)
     else:
-        s_t = _point_pair_score(a_gap, k.zero, g_gap, k.zero, delta, k, False, False)
+        # `_point_pair_score` of the vectors (gap, 0): their lengths hypot(gap, 0) are |gap| bit
+        # for bit (glibc returns |x| + 0 for y = 0; checked for every float32), without the calls.
+        s_t = _kernel(abs(abs(a_gap) - abs(g_gap)), k.sigma_t + delta, k.eps_t, k)
     if s_t == 0:
         return k.zero
     return math.sqrt(_kernel(c_theta, k.sigma_theta, k.eps_theta, k) * s_t)
