@@ -4,8 +4,9 @@ tensors on the CPU (the tables: `_compiled_line_pair_table`, below).
 The torch path (`blocks`) builds (P, rows, cols) keys, gathers the gate tables, finds the
 survivors with nonzero and scores them in ~20 small ops on flat index lists: ~90 % of the
 affinity's CPU time on KITTI 09 submaps. Here one pass visits the association pairs of the same
-spans in the same order, applies the same gate (without branches) and then scores the pairs of a
-row that passed, appending (patch, i, j, M) to growing buffers: no per-pair intermediates.
+spans in the same order, applies the same gate (row by row, vectorised on table rows gathered
+per primitive) and then scores the pairs of a row that passed, appending (patch, i, j, M) to
+growing buffers: no per-pair intermediates.
 
 The arithmetic follows the torch code operation by operation in the tables' dtype (every Python
 constant rounded to that dtype first, as torch does with scalars; numba fuses no multiply-adds),
