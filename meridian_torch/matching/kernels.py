@@ -345,6 +345,7 @@ def near_line_closeness(
                 ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
                 best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
             out[p, q] = best
+    return out
 
 
 @njit(cache=True, nogil=True)
