@@ -20,6 +20,7 @@ from meridian_torch.backend.consistency import (
     select_inliers,
     sparse_affinity,
 )
+from meridian_torch.backend.consistency_kernels import ball_heading_pairs
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.se2 import se2_inverse, se2_matrix
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
@@ -359,3 +360,118 @@ def test_sparse_affinity_equals_the_dense_matrix(seed: int, scaling: bool, fuse:
     whole = sorted(zip(i.tolist(), j.tolist(), v.tolist()))
     assert [e[:2] for e in joined] == [e[:2] for e in whole]
     np.testing.assert_allclose([e[2] for e in joined], [e[2] for e in whole], rtol=0, atol=1e-12)
+
+
+def _tree_pairs(points, heading, centres, radius, centre_heading, max_gap):
+    """`ball_heading_pairs`' plain definition: scipy's radius query, then torch's heading test."""
+    from scipy.spatial import cKDTree
+
+    from meridian_torch.geometry.se2 import wrap_angle
+
+    hits = cKDTree(points).query_ball_point(centres, radius, return_sorted=True) if len(centres) else []
+    centre = np.array([c for c, h in enumerate(hits) for _ in h], dtype=np.int64)
+    point = np.array([p for h in hits for p in h], dtype=np.int64)
+    gap = wrap_angle(torch.from_numpy(heading[point] - centre_heading[centre])).abs().numpy()
+    near = gap < max_gap[centre]
+    return centre[near], point[near]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 300), k=st.integers(0, 60), spread=st.sampled_from([1.0, 50.0, 1e4]))
+def test_ball_heading_pairs_equal_the_tree_query_and_heading_test(seed: int, n: int, k: int, spread: float) -> None:
+    rng = np.random.default_rng(seed)
+    # integer grids put points exactly on radii (3-4-5 triangles) and headings exactly on gaps
+    points = np.round(rng.uniform(0, spread, (n, 2))) if rng.random() < 0.5 else rng.uniform(0, spread, (n, 2))
+    centres = points[rng.integers(0, n, k)] + np.round(rng.normal(0, 3, (k, 2))) if n and rng.random() < 0.5 \
+        else rng.uniform(-5, spread + 5, (k, 2))
+    radius = np.where(rng.random(k) < 0.3, np.round(rng.uniform(0, 6, k)), rng.uniform(0, spread / 3, k))
+    heading = rng.uniform(-2 * np.pi, 2 * np.pi, n)
+    centre_heading = rng.uniform(-2 * np.pi, 2 * np.pi, k)
+    if n and k:
+        heading[: n // 4] = centre_heading[rng.integers(0, k, n // 4)] + rng.choice([np.pi, -np.pi, 2 * np.pi, 0.25], n // 4)
+    max_gap = rng.choice([0.25, 0.1, 1.0, 3.5], k)
+    got = ball_heading_pairs(points, heading, centres, radius, centre_heading, max_gap)
+    want = _tree_pairs(points, heading, centres, radius, centre_heading, max_gap)
+    for g, w in zip(got, want):
+        assert g.dtype == np.int64
+        np.testing.assert_array_equal(g, w)
+
+
+def test_ball_heading_pairs_skip_what_is_not_finite() -> None:
+    points = np.array([[0.0, 0.0], [np.nan, 1.0], [1.0, np.inf], [2.0, 0.0]])
+    centres = np.array([[0.0, 0.0], [np.nan, 0.0], [1.0, 0.0]])
+    ones = np.ones(3)
+    centre, point = ball_heading_pairs(points, np.zeros(4), centres, ones * 5, np.zeros(3), ones)
+    assert centre.tolist() == [0, 0, 2, 2] and point.tolist() == [0, 3, 0, 3]
+    for empty in (np.zeros((0, 2)), np.full((2, 2), np.nan)):
+        centre, point = ball_heading_pairs(empty, np.zeros(len(empty)), centres, ones, np.zeros(3), ones)
+        assert len(centre) == len(point) == 0
+
+
+def _tree_submap_edges(c, features, heading, cfg, mine, others):
+    """The earlier `_submap_edges`: a scipy tree per heading bin, its hits filtered in torch."""
+    offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]
+    predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
+    length = (c.path_length_m[others] - c.path_length_m[mine[0]]).abs()
+    if not cfg.path_length_scaling:
+        length = torch.zeros_like(length)
+    sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
+    sigma_yaw = math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length
+    radius = sigma_t + offset[:, :2, 2].norm(dim=1) * sigma_yaw + 1e-6
+    xy = c.T_world_base[mine, :2, 2]
+    extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
+    wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
+    queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
+    query_sigma_yaw = sigma_yaw[~wide] + 1e-9
+    n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
+    n_bins = n_bins if n_bins >= 3 else 1
+    mine_bin, query_bin = (consistency._heading_bin(heading[x], n_bins) for x in (mine, queries))
+    parts = []
+    for b in range(n_bins):
+        members = mine[mine_bin == b]
+        near_bin = (query_bin - b) % n_bins
+        searching = torch.nonzero((near_bin <= 1) | (near_bin == n_bins - 1) | (n_bins == 1)).flatten()
+        if len(members) == 0 or len(searching) == 0:
+            continue
+        for k in range(0, len(searching), consistency._CHUNK_QUERIES):
+            q = searching[k : k + consistency._CHUNK_QUERIES]
+            centre, point = (torch.from_numpy(x) for x in _tree_pairs(
+                c.T_world_base[members, :2, 2].numpy(), heading[members].numpy(), query_xy[q].numpy(),
+                query_radius[q].numpy(), heading[queries[q]].numpy(), query_sigma_yaw[q].numpy()))
+            parts.append(consistency._pair_edges(features, cfg, members[point], queries[q][centre]))
+    return consistency._cat_edges([*parts, consistency._block_edges(features, cfg, mine, others[wide])])
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scaling=st.booleans(), fuse=st.booleans(), tiny_chunks=st.booleans())
+def test_sparse_affinity_equals_the_tree_query_bitwise(seed: int, scaling: bool, fuse: bool, tiny_chunks: bool) -> None:
+    rng = np.random.default_rng(seed)
+    c = _near_gate_pool(rng, n_submaps=int(rng.integers(2, 9)), per_submap=int(rng.integers(1, 40)))
+    cfg = BackendConfig(path_length_scaling=scaling, fuse_quality=fuse)
+    first_new = int(rng.integers(0, len(c) + 1))
+    with mock.patch.object(consistency, "_CHUNK_QUERIES", 3 if tiny_chunks else consistency._CHUNK_QUERIES):
+        got = sparse_affinity(c, cfg, first_new=first_new)
+        with mock.patch.object(consistency, "_submap_edges", _tree_submap_edges):
+            want = sparse_affinity(c, cfg, first_new=first_new)
+    for g, w in zip(got, want):
+        assert torch.equal(g, w)
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_submap_groups_equal_unique_rows(split: bool) -> None:
+    rng = np.random.default_rng(3)
+    c = _near_gate_pool(rng, n_submaps=6, per_submap=5)
+    if split:  # one candidate of a submap with another odometry pose: its own group
+        T = c.T_odom_base.clone()
+        T[4, 0, 2] += 1.0
+        c = LoopClosureCandidates(**{**c.__dict__, "T_odom_base": T})
+    keys, group = consistency._submap_groups(c)
+    T = c.T_odom_base
+    key = torch.stack(
+        [c.submap_index.to(torch.float64), c.path_length_m, T[:, 0, 2], T[:, 1, 2], T[:, 0, 0], T[:, 1, 0]], dim=1
+    )
+    want_keys, want_group = torch.unique(key, dim=0, return_inverse=True)
+    assert torch.equal(keys, want_keys) and torch.equal(group, want_group)
+    assert len(keys) == 6 + split
+    empty_keys, empty_group = consistency._submap_groups(LoopClosureCandidates.empty())
+    assert empty_keys.shape == (0, 6) and len(empty_group) == 0

@@ -14,16 +14,15 @@ qualities by a geometric mean, cbrt(s q_i q_j), with a unit diagonal.
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
+from meridian_torch.backend.consistency_kernels import ball_heading_pairs
 from meridian_torch.config import BackendConfig
 from meridian_torch.geometry.se2 import se2_inverse, wrap_angle, yaw_of
 from meridian_torch.matching.clipper.sparse import Edges, dense_block, restrict_edges, solve_clipper_sparse
@@ -141,12 +140,20 @@ def _submap_groups(c: LoopClosureCandidates) -> tuple[Tensor, Tensor]:
     key = torch.stack(
         [c.submap_index.to(torch.float64), c.path_length_m, T[:, 0, 2], T[:, 1, 2], T[:, 0, 0], T[:, 1, 0]], dim=1
     )
+    # Usually each submap has one key: then its rows in submap order are torch.unique's rows
+    # (sorted lexicographically, the submap first), found without sorting N rows of 6 floats.
+    key_np = key.numpy()
+    _, first, group = np.unique(c.submap_index.numpy(), return_index=True, return_inverse=True)
+    if bool((key_np[first][group] == key_np).all()):
+        return torch.from_numpy(key_np[first]), torch.from_numpy(group)
     return torch.unique(key, dim=0, return_inverse=True)
 
 
 # Pairs scored at once: each costs ~500 bytes in gathered candidates and temporaries, so 2^18
 # pairs hold ~130 MiB (2^21 held ~1 GiB, the peak of a run before its fix); larger chunks were
-# no faster. Radius queries run in chunks of queries for the same reason (their hits are Python lists).
+# no faster. A heading bin's pairs are scored in pieces of the pairs of this many queries (the
+# chunks of an earlier tree query, whose hits were Python lists): a pair's place in its piece fixes
+# its rounding (see `_submap_edges`).
 _CHUNK_PAIRS = 1 << 18
 _CHUNK_QUERIES = 1 << 12
 
@@ -168,7 +175,9 @@ def _pair_edges(features: Tensor, cfg: BackendConfig, i: Tensor, j: Tensor) -> E
     return _cat_edges(parts)
 
 
-def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig, mine: Tensor, others: Tensor) -> Edges:
+def _submap_edges(
+    c: LoopClosureCandidates, features: Tensor, heading: Tensor, cfg: BackendConfig, mine: Tensor, others: Tensor
+) -> Edges:
     """Non-zero affinities between the candidates `mine` (one submap) and `others` (other submaps).
 
     For a candidate b of submap B, the pose it predicts for submap A's base is
@@ -177,10 +186,10 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     at most |o| * yaw error (o = odometry offset between the submaps), and a non-zero affinity
     needs yaw error < sigma_yaw and translation error < sigma_t. So only the candidates of A
     within sigma_t + |o| sigma_yaw of t_Q can pair with b: a radius query finds them. The yaw
-    error of a pair is the difference of the two candidates' T_world_odom headings, so A's
+    error of a pair is the difference of the two candidates' T_world_odom (`heading`), so A's
     candidates are searched by heading bin, and hits whose headings differ by sigma_yaw or more
     are dropped before they are scored (most of them before a fix: about 20 M hits for 0.1 M
-    edges). Where that disk covers much of A's candidates (far-apart submaps: the noise grows
+    edges); both tests run in one compiled pass (`ball_heading_pairs`). Where that disk covers much of A's candidates (far-apart submaps: the noise grows
     with path length) scoring every pair is cheaper than the query, and gives the same edges.
     """
     offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
@@ -196,32 +205,37 @@ def _submap_edges(c: LoopClosureCandidates, features: Tensor, cfg: BackendConfig
     wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
     queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
     # headings of T_world_odom; the margin covers rounding (the exact test is in the affinity)
-    heading = features[_WYAW] - features[_OYAW]
-    query_sigma_yaw = sigma_yaw[~wide] + 1e-9
+    query_sigma_yaw = sigma_yaw[~wide] + 1e-9  # the margin covers rounding (the exact test is in the affinity)
     # `mine` split by heading into bins at least the widest sigma_yaw wide: a query searches its
     # own bin and the two beside it, which hold every heading within its sigma_yaw
     n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
     n_bins = n_bins if n_bins >= 3 else 1
-    mine_bin, query_bin = (_heading_bin(heading[x], n_bins) for x in (mine, queries))
+    # The bins' bookkeeping in numpy: per bin, torch's ops over the whole pool were each a
+    # parallel region (tens of thousands per call), and each can wait for a busy second core.
+    mine_bin, query_bin = (_heading_bin(heading[x], n_bins).numpy() for x in (mine, queries))
+    mine_by_bin, query_by_bin = (np.argsort(x, kind="stable") for x in (mine_bin, query_bin))
+    mine_start, query_start = (np.searchsorted(x[o], np.arange(n_bins + 1)) for x, o in
+                               ((mine_bin, mine_by_bin), (query_bin, query_by_bin)))
+    world_xy, heading_np, queries_np = c.T_world_base[:, :2, 2].numpy(), heading.numpy(), queries.numpy()
+    query_xy, query_radius, query_sigma_yaw = query_xy.numpy(), query_radius.numpy(), query_sigma_yaw.numpy()
     parts = []
     for b in range(n_bins):
-        members = mine[mine_bin == b]
-        if n_bins > 1:
-            near_bin = (query_bin - b) % n_bins
-            searching = torch.nonzero((near_bin <= 1) | (near_bin == n_bins - 1)).flatten()
-        else:
-            searching = torch.arange(len(queries))
+        members = mine.numpy()[mine_by_bin[mine_start[b] : mine_start[b + 1]]]  # ascending
+        near_bins = {(b - 1) % n_bins, b, (b + 1) % n_bins} if n_bins > 1 else {0}
+        searching = np.sort(np.concatenate([query_by_bin[query_start[x] : query_start[x + 1]] for x in near_bins]))
         if len(members) == 0 or len(searching) == 0:
             continue
-        tree = cKDTree(c.T_world_base[members, :2, 2].numpy())
-        for k in range(0, len(searching), _CHUNK_QUERIES):
-            q = searching[k : k + _CHUNK_QUERIES]
-            hits = tree.query_ball_point(query_xy[q].numpy(), query_radius[q].numpy())
-            counts = torch.tensor([len(h) for h in hits], dtype=torch.int64)
-            flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-            rows, cols = members[torch.from_numpy(flat)], queries[q].repeat_interleave(counts)
-            near = wrap_angle(heading[rows] - heading[cols]).abs() < query_sigma_yaw[q].repeat_interleave(counts)
-            parts.append(_pair_edges(features, cfg, rows[near], cols[near]))
+        query, member = ball_heading_pairs(
+            world_xy[members], heading_np[members], query_xy[searching], query_radius[searching],
+            heading_np[queries_np[searching]], query_sigma_yaw[searching],
+        )
+        # Scored in the pieces of the earlier query chunks: torch's pow and hypot round the tail
+        # of a call's vector loop differently, so each pair keeps its place in its piece.
+        pieces = np.searchsorted(query, np.arange(_CHUNK_QUERIES, len(searching), _CHUNK_QUERIES))
+        for q, m in zip(np.split(query, pieces), np.split(member, pieces)):
+            if len(q):
+                rows, cols = torch.from_numpy(members[m]), torch.from_numpy(queries_np[searching[q]])
+                parts.append(_pair_edges(features, cfg, rows, cols))
     return _cat_edges([*parts, _block_edges(features, cfg, mine, others[wide])])
 
 
@@ -264,13 +278,17 @@ def sparse_affinity(c: LoopClosureCandidates, cfg: BackendConfig, *, first_new: 
     """
     keys, group = _submap_groups(c)
     features = _features(c)
-    pending = torch.ones(len(keys), dtype=torch.bool)  # submaps whose pairs with the rest are not yet found
+    heading = features[_WYAW] - features[_OYAW]  # of T_world_odom: a pair's yaw error is their difference
+    # The submaps' bookkeeping in numpy (see `_submap_edges`).
+    group_np, submap = group.numpy(), keys[:, 0].numpy()
+    pending = np.ones(len(keys), dtype=bool)  # submaps whose pairs with the rest are not yet found
     parts = []
-    for g in torch.unique(group[first_new:]).tolist():
+    for g in np.unique(group_np[first_new:]):
         pending[g] = False
-        others = torch.nonzero(pending[group] & (keys[group, 0] != keys[g, 0])).flatten()
+        others = np.flatnonzero(pending[group_np] & (submap[group_np] != submap[g]))
         if len(others):
-            parts.append(_submap_edges(c, features, cfg, torch.nonzero(group == g).flatten(), others))
+            mine = np.flatnonzero(group_np == g)
+            parts.append(_submap_edges(c, features, heading, cfg, torch.from_numpy(mine), torch.from_numpy(others)))
     # A final pass over a long drive holds millions of edges: free each copy as the next is made.
     i, j, v = _cat_edges(parts)
     del parts
