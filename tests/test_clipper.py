@@ -410,3 +410,28 @@ def test_sparse_solve_equals_dense_on_any_graph(n: int, density: float, seed: in
     dense = solve_clipper(M, generator=torch.Generator().manual_seed(seed))
     assert torch.equal(sparse.inliers, dense.inliers)
     torch.testing.assert_close(sparse.u, dense.u, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_sparse_problem_scipy_products_equal_torch_csr_bitwise(seed: int) -> None:
+    from meridian_torch.matching.clipper.ascent import _SparseProblem
+    from meridian_torch.matching.clipper.sparse import _symmetric_csr
+
+    g = torch.Generator().manual_seed(seed)
+    n = [1, 7, 300, 2500, 40, 900][seed]
+    m = int(torch.randint(0, 40 * n, (1,), generator=g))
+    i, j = torch.randint(0, n, (2, m), generator=g)
+    key = torch.unique(torch.minimum(i, j) * n + torch.maximum(i, j))
+    key = key[key // n != key % n]
+    M_off, pattern = _symmetric_csr(n, key // n, key % n, torch.rand(len(key), dtype=torch.float64, generator=g))
+    diag, d = torch.ones(1, n, dtype=torch.float64), torch.rand(1, dtype=torch.float64, generator=g)
+    fast = _SparseProblem(M_off, pattern, diag, d)
+    plain = _SparseProblem(M_off, pattern, diag, d)
+    plain._scipy = None  # torch's CSR products
+    assert fast._scipy is not None
+    for u in (torch.rand(1, n, dtype=torch.float64, generator=g), torch.zeros(1, n, dtype=torch.float64),
+              torch.randn(1, n, dtype=torch.float64, generator=g) * 1e3):
+        assert torch.equal(fast.mv(u), plain.mv(u))
+        assert torch.equal(fast.cb_mv(u), plain.cb_mv(u))
+    float32 = _SparseProblem(M_off.to(torch.float32), pattern.to(torch.float32), diag.float(), d.float())
+    assert float32._scipy is None  # other dtypes (and devices) keep torch's products

@@ -65,16 +65,33 @@ class _DenseProblem:
 class _SparseProblem:
     """One problem (B = 1) from its sparse affinity M (CSR, no diagonal), never densified: with P
     the pattern of M, the forbidden pairs are Cb = 1 - I - P, so Cb u = sum(u) - u - P u and
-    Md u = M u + diag u - d Cb u cost O(nnz + n) instead of O(n^2)."""
+    Md u = M u + diag u - d Cb u cost O(nnz + n) instead of O(n^2).
+
+    On the CPU in float64 the products run in scipy: torch's CSR product starts a parallel region
+    per call (milliseconds each when the other core is busy, for tens of microseconds of work),
+    and scipy sums each row in the same order on one thread (bitwise torch's, tested)."""
 
     def __init__(self, M_off: Tensor, pattern: Tensor, diag: Tensor, d: Tensor) -> None:
         self.M_off, self.pattern, self.diag, self.d = M_off, pattern, diag, d
+        self._scipy = None
+        if M_off.device.type == "cpu" and M_off.dtype == torch.float64:
+            import scipy.sparse
+
+            index = (M_off.col_indices().numpy(), M_off.crow_indices().numpy())
+            self._scipy = tuple(scipy.sparse.csr_matrix((A.values().numpy(), *index), shape=A.shape)
+                                for A in (M_off, pattern))
+
+    def _product(self, which: int, u: Tensor) -> Tensor:
+        """(M_off or pattern) u' for u (B, n), as (B, n)."""
+        if self._scipy is None:
+            return ((self.M_off, self.pattern)[which] @ u.T).T
+        return torch.from_numpy(self._scipy[which] @ u.numpy().T).T
 
     def cb_mv(self, u: Tensor) -> Tensor:
-        return u.sum(-1, keepdim=True) - u - (self.pattern @ u.T).T
+        return u.sum(-1, keepdim=True) - u - self._product(1, u)
 
     def mv(self, u: Tensor) -> Tensor:
-        return (self.M_off @ u.T).T + self.diag * u - self.d[:, None] * self.cb_mv(u)
+        return self._product(0, u) + self.diag * u - self.d[:, None] * self.cb_mv(u)
 
     def select(self, keep: Tensor) -> "_SparseProblem":
         return self  # one problem: selecting it keeps it, and an empty selection is never used
