@@ -189,8 +189,9 @@ def _submap_edges(
     error of a pair is the difference of the two candidates' T_world_odom (`heading`), so A's
     candidates are searched by heading bin, and hits whose headings differ by sigma_yaw or more
     are dropped before they are scored (most of them before a fix: about 20 M hits for 0.1 M
-    edges); both tests run in one compiled pass (`ball_heading_pairs`). Where that disk covers much of A's candidates (far-apart submaps: the noise grows
-    with path length) scoring every pair is cheaper than the query, and gives the same edges.
+    edges); both tests run in one compiled pass (`ball_heading_pairs`). Where that disk covers
+    much of A's candidates (far-apart submaps: the noise grows with path length) scoring every
+    pair is cheaper than the query, and gives the same edges.
     """
     offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
     predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
