@@ -410,21 +410,7 @@ def test_ball_heading_pairs_skip_what_is_not_finite() -> None:
 
 def _tree_submap_edges(c, features, heading, cfg, mine, others):
     """The earlier `_submap_edges`: a scipy tree per heading bin, its hits filtered in torch."""
-    offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]
-    predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
-    length = (c.path_length_m[others] - c.path_length_m[mine[0]]).abs()
-    if not cfg.path_length_scaling:
-        length = torch.zeros_like(length)
-    sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
-    sigma_yaw = math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length
-    radius = sigma_t + offset[:, :2, 2].norm(dim=1) * sigma_yaw + 1e-6
-    xy = c.T_world_base[mine, :2, 2]
-    extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
-    wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
-    queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
-    query_sigma_yaw = sigma_yaw[~wide] + 1e-9
-    n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
-    n_bins = n_bins if n_bins >= 3 else 1
+    queries, query_xy, query_radius, query_sigma_yaw, wide, n_bins = consistency._queries(c, cfg, mine, others)
     mine_bin, query_bin = (consistency._heading_bin(heading[x], n_bins) for x in (mine, queries))
     parts = []
     for b in range(n_bins):

@@ -175,6 +175,32 @@ def _pair_edges(features: Tensor, cfg: BackendConfig, i: Tensor, j: Tensor) -> E
     return _cat_edges(parts)
 
 
+def _queries(
+    c: LoopClosureCandidates, cfg: BackendConfig, mine: Tensor, others: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, int]:
+    """The radius queries of `others` into the candidates `mine` (see `_submap_edges`): the
+    queried candidates (those whose disk is not wide), their predicted positions, radii and yaw
+    gates, the wide mask over `others`, and the number of heading bins of `mine`."""
+    offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
+    predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
+    length = (c.path_length_m[others] - c.path_length_m[mine[0]]).abs()
+    if not cfg.path_length_scaling:
+        length = torch.zeros_like(length)
+    sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
+    sigma_yaw = math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length
+    radius = sigma_t + offset[:, :2, 2].norm(dim=1) * sigma_yaw + 1e-6
+    xy = c.T_world_base[mine, :2, 2]
+    extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
+    wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
+    queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
+    query_sigma_yaw = sigma_yaw[~wide] + 1e-9  # the margin covers rounding (the exact test is in the affinity)
+    # `mine` split by heading into bins at least the widest sigma_yaw wide: a query searches its
+    # own bin and the two beside it, which hold every heading within its sigma_yaw
+    n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
+    n_bins = n_bins if n_bins >= 3 else 1
+    return queries, query_xy, query_radius, query_sigma_yaw, wide, n_bins
+
+
 def _submap_edges(
     c: LoopClosureCandidates, features: Tensor, heading: Tensor, cfg: BackendConfig, mine: Tensor, others: Tensor
 ) -> Edges:
@@ -193,24 +219,7 @@ def _submap_edges(
     much of A's candidates (far-apart submaps: the noise grows with path length) scoring every
     pair is cheaper than the query, and gives the same edges.
     """
-    offset = se2_inverse(c.T_odom_base[others]) @ c.T_odom_base[mine[0]]  # odometry motion to `mine`'s submap
-    predicted = (c.T_world_base[others] @ offset)[:, :2, 2]
-    length = (c.path_length_m[others] - c.path_length_m[mine[0]]).abs()
-    if not cfg.path_length_scaling:
-        length = torch.zeros_like(length)
-    sigma_t = cfg.sigma_t_m + cfg.sigma_t_m_per_m * length
-    sigma_yaw = math.radians(cfg.sigma_yaw_deg) + math.radians(cfg.sigma_yaw_deg_per_m) * length
-    radius = sigma_t + offset[:, :2, 2].norm(dim=1) * sigma_yaw + 1e-6
-    xy = c.T_world_base[mine, :2, 2]
-    extent = (xy.amax(0) - xy.amin(0)).clamp_min(1.0)
-    wide = math.pi * radius.square() >= 0.1 * float(extent.prod())
-    queries, query_xy, query_radius = others[~wide], predicted[~wide], radius[~wide]
-    # headings of T_world_odom; the margin covers rounding (the exact test is in the affinity)
-    query_sigma_yaw = sigma_yaw[~wide] + 1e-9  # the margin covers rounding (the exact test is in the affinity)
-    # `mine` split by heading into bins at least the widest sigma_yaw wide: a query searches its
-    # own bin and the two beside it, which hold every heading within its sigma_yaw
-    n_bins = int(2.0 * math.pi / (float(query_sigma_yaw.max()) * (1.0 + 1e-6))) if len(queries) else 1
-    n_bins = n_bins if n_bins >= 3 else 1
+    queries, query_xy, query_radius, query_sigma_yaw, wide, n_bins = _queries(c, cfg, mine, others)
     # The bins' bookkeeping in numpy: per bin, torch's ops over the whole pool were each a
     # parallel region (tens of thousands per call), and each can wait for a busy second core.
     mine_bin, query_bin = (_heading_bin(heading[x], n_bins).numpy() for x in (mine, queries))
