@@ -135,11 +135,14 @@ class _BlockRows:
         b = new_id[self.batch]
         use = b >= 0
         # Rows are sorted by (batch, row, col); keeping batches in order keeps them sorted.
-        batch, row = b[use], self.row[use]
-        size = keep.numel() * self.m
-        crow = torch.zeros(size + 1, dtype=torch.int64, device=keep.device)
-        crow[1:] = torch.cumsum(torch.bincount(batch * self.m + row, minlength=size), 0)
-        return _BlockRows(crow, batch, row, self.col[use], self.value[use], self.m)
+        return _BlockRows.of_sorted(b[use], self.row[use], self.col[use], self.value[use], self.m, keep.numel())
+
+    @staticmethod
+    def of_sorted(batch: Tensor, row: Tensor, col: Tensor, value: Tensor, m: int, n_blocks: int) -> _BlockRows:
+        """The rows of entries already sorted by (batch, row, col), with their offsets counted."""
+        crow = torch.zeros(n_blocks * m + 1, dtype=torch.int64, device=batch.device)
+        crow[1:] = torch.cumsum(torch.bincount(batch * m + row, minlength=n_blocks * m), 0)
+        return _BlockRows(crow, batch, row, col, value, m)
 
 
 def _block_rows(entries: AffinityEntries, compiled: bool | None = None) -> _BlockRows:
@@ -152,11 +155,7 @@ def _block_rows(entries: AffinityEntries, compiled: bool | None = None) -> _Bloc
         arrays = [x.contiguous().numpy() for x in (entries.index, entries.value, entries.valid)]
         return _BlockRows(*(torch.from_numpy(a) for a in block_rows(*arrays)), m)
     M = entries.to_sparse()
-    batch, row, col = M.indices()
-    n_rows = len(entries.valid) * m
-    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=batch.device)
-    crow[1:] = torch.cumsum(torch.bincount(batch * m + row, minlength=n_rows), 0)
-    return _BlockRows(crow, batch, row, col, M.values(), m)
+    return _BlockRows.of_sorted(*M.indices(), M.values(), m, len(entries.valid))
 
 
 class _BlockOperator:
