@@ -8,7 +8,9 @@ then the final offline pass) on one sequence folder and prints:
 - the peak resident memory of the process, and which stages raised it;
 - seconds per stage and sub-stage (perception, 3D observations, tracking, submaps, place
   recognition, associations, affinity, particles, registration, verification, consistency,
-  pose graph, ...), as recorded by `meridian_torch.core.timing`;
+  pose graph, ...), as recorded by `meridian_torch.core.timing`; stages that run in threads
+  (perception ahead of tracking, a match's patch groups) count each thread's seconds, so
+  sub-stages can add up to more than their parent;
 - the final and incremental ATE when the sequence has ground truth, so that speed and accuracy
   are read together.
 
@@ -409,7 +411,8 @@ def report(results: list[tuple[str, dict]]) -> str:
             lines += [f"| {path} | {mib:.0f} |" for path, mib in raised[:8]]
             lines.append("")
     for label, r in results:
-        lines.append(f"time per stage, {label} ({r['source']}):")
+        lines.append(f"time per stage, {label} ({r['source']}) (work done in threads, such as perception "
+                     "ahead of tracking or a match's patch groups, counts each thread's seconds):")
         lines.append("| stage | s | % of wall | calls | ms per call |")
         lines.append("|---|---|---|---|---|")
         for name, s, calls in _stage_rows(r):

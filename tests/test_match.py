@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -221,6 +222,30 @@ def test_patch_chunking_does_not_change_results(prior: float | None) -> None:
         assert torch.equal(runs[0].valid, other.valid) and torch.equal(runs[0].association_mask, other.association_mask)
         assert torch.equal(runs[0].T_world_odom, other.T_world_odom)
         assert torch.equal(runs[0].probability, other.probability)
+        assert torch.equal(runs[0].objective, other.objective)
+
+
+@pytest.mark.parametrize("prior", [None, YAW])
+def test_patch_groups_in_threads_give_the_results_of_one_thread(prior: float | None) -> None:
+    # On the CPU the patch groups run side by side, one torch thread each; the thread count must
+    # decide only where a group runs, never what it computes.
+    ground, patches, _, _ = scene()
+    other_ground, other_patches, _, _ = scene(seed=3)
+    batch = stack_primitive_sets(patches + other_patches + [_sized(patches[0], 6, 4)])
+    cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=16, n_iterations=60), "patch_chunk": 2})
+    threads = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            runs.append(match_submap(ground, batch, rotation_prior=prior, config=cfg,
+                                     generator=torch.Generator().manual_seed(6)))
+    finally:
+        torch.set_num_threads(threads)
+    assert runs[0].valid.any(dim=1).sum() >= 2
+    for other in runs[1:]:
+        for field in dataclasses.fields(other):
+            assert torch.equal(getattr(runs[0], field.name), getattr(other, field.name)), field.name
 
 
 def test_sub_stages_are_timed_when_recorded() -> None:
@@ -232,5 +257,5 @@ def test_sub_stages_are_timed_when_recorded() -> None:
         match_submap(ground, stack_primitive_sets(patches), config=cfg, generator=torch.Generator().manual_seed(0))
     assert set(times.seconds) == {"associations", "affinity", "pruning", "particles", "registration", "clustering",
                                   "verification"}
-    assert times.calls["affinity"] == times.calls["pruning"] == -(-len(patches) // 2)  # one per patch chunk
-    assert times.calls["particles"] == 1  # the small pruned problems of all chunks are sampled together
+    groups = -(-len(patches) // 2)
+    assert times.calls["affinity"] == times.calls["pruning"] == times.calls["particles"] == groups  # one per group

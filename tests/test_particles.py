@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from meridian_torch.config.matching import ParticleConfig
-from meridian_torch.matching.particle_problem import concat_problems, sampler_problem, support_pruning
-from meridian_torch.matching.particles import patch_seeds, sample_inlier_sets, sample_problem
+from meridian_torch.matching.particle_problem import support_pruning
+from meridian_torch.matching.particles import patch_seeds, sample_inlier_sets
 
 CFG = ParticleConfig(n_particles=24, n_iterations=60)
 
@@ -159,30 +159,6 @@ def test_patches_stopping_at_the_same_check_keep_their_results() -> None:
     empty = sample_inlier_sets(torch.zeros(2, 0, 0), torch.zeros(2, 0, dtype=torch.bool),
                                torch.zeros(2, 0, 2, dtype=torch.int64), cfg)
     assert not empty.valid.any()
-
-
-@pytest.mark.parametrize("max_associations", [None, 20])
-def test_concatenated_problems_sample_as_each_alone(max_associations: int | None) -> None:
-    # match_submap samples the problems of all its patch chunks in one batch; each patch's sets
-    # must be those it gets in its own batch (chunks differ in how many associations they keep).
-    torch.set_num_threads(1)
-    cfg = ParticleConfig(n_particles=24, n_iterations=60, max_associations=max_associations)
-    M, valid, pairs = batch([planted_problem(20, 60, 8), planted_problem(21, 30, 6), planted_problem(22, 50, 7)])
-    valid[2, 40:] = False  # a patch with fewer associations than the others
-    M[2, 40:], M[2, :, 40:], pairs[2, 40:] = 0.0, 0.0, -1
-    seeds = patch_seeds(3, torch.Generator().manual_seed(5))
-    parts = [sampler_problem(M[:1], valid[:1], pairs[:1], cfg), sampler_problem(M[1:], valid[1:], pairs[1:], cfg)]
-    together = sample_problem(concat_problems(parts), cfg, seeds)
-    alone = [sample_problem(parts[0], cfg, seeds[:1]), sample_problem(parts[1], cfg, seeds[1:])]
-    for p, (sets, q) in enumerate([(alone[0], 0), (alone[1], 0), (alone[1], 1)]):
-        s = int(sets.valid[q].sum())
-        assert s > 0 and int(together.valid[p].sum()) == s
-        assert torch.equal(together.masks[p, :s], sets.masks[q, :s])
-        assert torch.equal(together.counts[p, :s], sets.counts[q, :s])
-        assert int(together.iterations[p]) == int(sets.iterations[q])
-        torch.testing.assert_close(together.objective[p, :s], sets.objective[q, :s])
-    with pytest.raises(ValueError, match="different association axes"):
-        concat_problems([parts[0], sampler_problem(M[:1, :50, :50], valid[:1, :50], pairs[:1, :50], cfg)])
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -334,7 +334,8 @@ class MatchConfig(StrictModel):
     patch_chunk: int = Field(
         default=8,
         ge=1,
-        description="patches whose affinities are built together: bounds peak memory, results do not depend on it",
+        description="patches matched together as one group (affinity, particles, registration, verification): "
+        "bounds peak memory; on the CPU the groups run side by side on torch's threads; results do not depend on it",
     )
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     hypotheses_per_patch: int = Field(default=25, ge=1, description="L, clustered hypotheses kept per patch")

@@ -14,21 +14,19 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import MatchConfig
+from meridian_torch.core.parallel import thread_map
 from meridian_torch.core.timing import stage
 from meridian_torch.matching.affinity import affinity, affinity_entries
 from meridian_torch.matching.associations import Associations, putative_associations
 from meridian_torch.matching.clipper import solve_clipper
 from meridian_torch.matching.hypotheses import Hypotheses, cluster_hypotheses
-from meridian_torch.matching.particle_problem import concat_problems, sampler_problem
+from meridian_torch.matching.particle_problem import sampler_problem
 from meridian_torch.matching.particles import InlierSets, patch_seeds, sample_problem
 from meridian_torch.matching.verification import reweight_hypotheses
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet, stack_primitive_sets
 
 __all__ = ["match_submap", "match_arrays"]
 
-# Floats per sampler state buffer (patches x associations x particles) sampled together: 8 MiB
-# each at float32 (the dynamics keep about five), so peak memory stays bounded on any map.
-_SAMPLER_ELEMENTS = 1 << 21
 # (patch, set, set) entries clustered together; a few such tensors live at once.
 _CLUSTER_ELEMENTS = 1 << 21
 
@@ -75,25 +73,6 @@ def _patch_chunk(assoc: Associations, aerial: PrimitiveBatch, part: Tensor) -> t
     return assoc_part, aerial_part
 
 
-def _concat_sets(chunks: list[InlierSets]) -> InlierSets:
-    """InlierSets of consecutive patch chunks as one, padded to the largest number of sets."""
-    if len(chunks) == 1:
-        return chunks[0]
-    n_sets = max(c.masks.shape[1] for c in chunks)
-
-    def pad(x: Tensor) -> Tensor:
-        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, n_sets - x.shape[1]))
-
-    return InlierSets(
-        masks=torch.cat([pad(c.masks) for c in chunks]),
-        counts=torch.cat([pad(c.counts) for c in chunks]),
-        objective=torch.cat([pad(c.objective) for c in chunks]),
-        valid=torch.cat([pad(c.valid) for c in chunks]),
-        iterations=torch.cat([c.iterations for c in chunks]),
-        n_particles=chunks[0].n_particles,
-    )
-
-
 def _take_patches(sets: InlierSets, index: Tensor) -> InlierSets:
     """The patches `index` of `sets`, in that order."""
     return dataclasses.replace(
@@ -114,47 +93,17 @@ def _select_associations(assoc: Associations, part: Tensor) -> Associations:
     )
 
 
+def _take_hypotheses(h: Hypotheses, index: Tensor) -> Hypotheses:
+    """The patches `index` of `h`, in that order."""
+    return Hypotheses(**{f.name: getattr(h, f.name)[index] for f in dataclasses.fields(h)})
+
+
 def _concat_hypotheses(parts: list[Hypotheses]) -> Hypotheses:
     """Hypotheses of consecutive patch chunks (same L and association axis) as one."""
     if len(parts) == 1:
         return parts[0]
     names = [f.name for f in dataclasses.fields(parts[0])]
     return Hypotheses(**{name: torch.cat([getattr(h, name) for h in parts]) for name in names})
-
-
-def _sample_chunks(
-    ground: PrimitiveSet, aerial: PrimitiveBatch, assoc: Associations, prior: Tensor | None, order: Tensor,
-    seeds: Tensor, cfg: MatchConfig,
-) -> InlierSets:
-    """Inlier sets of the patches `order` (seeds in that order): affinities a patch chunk at a
-    time (memory), then the small pruned problems of many chunks sampled in one batch, which
-    halves the per-step overhead of a match; a batch stays under _SAMPLER_ELEMENTS floats."""
-    sampled, pending, elements = [], [], 0
-
-    def flush() -> None:
-        problem = concat_problems([p for _, p in pending])
-        part = torch.cat([q for q, _ in pending])
-        with stage("particles"):
-            sampled.append(sample_problem(problem, cfg.particles, seeds[part]))
-        pending.clear()
-
-    for c0 in range(0, len(aerial), cfg.patch_chunk):
-        part = order[c0 : c0 + cfg.patch_chunk]
-        assoc_c, aerial_c = _patch_chunk(assoc, aerial, part)
-        with stage("affinity"):
-            M = affinity_entries(ground, aerial_c, assoc_c, cfg.affinity, rotation_prior=None if prior is None else prior[part])
-        with stage("pruning"):
-            problem = sampler_problem(M, assoc_c.valid, assoc_c.pairs, cfg.particles)
-        del M
-        size = problem.entries.valid.numel() * cfg.particles.n_particles
-        if pending and elements + size > _SAMPLER_ELEMENTS:
-            flush()
-            elements = 0
-        pending.append((torch.arange(c0, c0 + len(part), device=order.device), problem))
-        elements += size
-    if pending:
-        flush()
-    return _concat_sets(sampled)
 
 
 @torch.no_grad()
@@ -200,13 +149,51 @@ def match_submap(
             M = affinity(ground, aerial, assoc, cfg.affinity, rotation_prior=prior)
         with stage("clipper"):
             sets = _clipper_sets(M, assoc.valid, cfg, generator)
-    else:
-        # Seeds are drawn per patch up front, so a patch's result is the same in any chunking.
-        # Chunks take patches by size (most lines first), so each chunk's tables are padded
-        # only to patches like its own.
-        seeds = patch_seeds(len(aerial), generator)
-        by_size = torch.argsort(aerial.used_lengths()[1], descending=True, stable=True)
-        sets = _take_patches(_sample_chunks(ground, aerial, assoc, prior, by_size, seeds[by_size], cfg), torch.argsort(by_size))
+        return _hypotheses(sets, ground, aerial, assoc, cfg)
+    # Seeds are drawn per patch up front, so a patch's result does not depend on its group.
+    seeds = patch_seeds(len(aerial), generator)
+    groups = _patch_groups(aerial, cfg.patch_chunk)
+    # A group's sets, hypotheses and alignment depend on its patches alone, so on the CPU the
+    # groups run side by side, one torch thread each: every stage after the associations uses
+    # every core, not only the Langevin loop (the rest are one-thread kernels and small ops).
+    # The groups are the same for any thread count, and so are the results.
+    threads = torch.get_num_threads() if device.type == "cpu" else 1
+    parts = thread_map(
+        lambda group: _group_hypotheses(ground, aerial, assoc, prior, seeds, group, cfg),
+        groups,
+        threads,
+        torch_threads_each=1,
+    )
+    return _take_hypotheses(_concat_hypotheses(parts), torch.argsort(torch.cat(groups)))
+
+
+def _patch_groups(aerial: PrimitiveBatch, size: int) -> list[Tensor]:
+    """The patches by size (most lines first) in groups of `size`, so that each group's tables
+    are padded only to patches like its own."""
+    by_size = torch.argsort(aerial.used_lengths()[1], descending=True, stable=True)
+    return list(by_size.split(size))
+
+
+def _group_hypotheses(
+    ground: PrimitiveSet, aerial: PrimitiveBatch, assoc: Associations, prior: Tensor | None, seeds: Tensor,
+    group: Tensor, cfg: MatchConfig,
+) -> Hypotheses:
+    """Particle sets and hypotheses of the patches `group` (seeds: one per patch of `aerial`)."""
+    assoc_g, aerial_g = _patch_chunk(assoc, aerial, group)
+    with stage("affinity"):
+        M = affinity_entries(ground, aerial_g, assoc_g, cfg.affinity, rotation_prior=None if prior is None else prior[group])
+    with stage("pruning"):
+        problem = sampler_problem(M, assoc_g.valid, assoc_g.pairs, cfg.particles)
+    del M
+    with stage("particles"):
+        sets = sample_problem(problem, cfg.particles, seeds[group])
+    return _hypotheses(sets, ground, aerial.select(group), _select_associations(assoc, group), cfg)
+
+
+def _hypotheses(
+    sets: InlierSets, ground: PrimitiveSet, aerial: PrimitiveBatch, assoc: Associations, cfg: MatchConfig
+) -> Hypotheses:
+    """Registration, clustering and (if enabled) verification of the patches' inlier sets."""
     verify = cfg.verification
     n_clustered = max(verify.candidates, cfg.hypotheses_per_patch) if verify.enabled else cfg.hypotheses_per_patch
     # Clustering compares every pair of a patch's sets, (P, S, S): a group of patches at a time, so

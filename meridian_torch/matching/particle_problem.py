@@ -1,6 +1,6 @@
 """What the particle sampler runs on: `SamplerProblem`, the affinities of P patches over all their
 associations or the best supported k of them (`support_pruning`: two-step walk counts on the
-affinity graph), and problems of several patch groups concatenated into one batch."""
+affinity graph)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.kernels import renumbered_entries, support_walks
 
-__all__ = ["SamplerProblem", "concat_problems", "sampler_problem", "support_pruning"]
+__all__ = ["SamplerProblem", "sampler_problem", "support_pruning"]
 
 
 @dataclass(frozen=True)
@@ -119,25 +119,3 @@ def sampler_problem(M: Tensor | AffinityEntries, valid: Tensor, pairs: Tensor, c
     entries = M if isinstance(M, AffinityEntries) else _upper_entries(M, valid)
     index = torch.arange(m, device=valid.device).expand(n_patches, m).masked_fill(~valid, m)
     return SamplerProblem(entries, pairs, index, m)
-
-
-def concat_problems(problems: list[SamplerProblem]) -> SamplerProblem:
-    """Problems of consecutive patch groups (same m) as one batch, padded to the largest k;
-    padding changes no patch's result (see the `particles` module docstring)."""
-    if len(problems) == 1:
-        return problems[0]
-    m = problems[0].m
-    if any(p.m != m for p in problems):
-        raise ValueError(f"problems over different association axes: m = {sorted({p.m for p in problems})}")
-    k = max(p.entries.valid.shape[1] for p in problems)
-    offsets = torch.tensor([0] + [len(p.entries.valid) for p in problems]).cumsum(0).tolist()
-
-    def pad(x: Tensor, value: int | bool) -> Tensor:
-        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, k - x.shape[1]), value=value)
-
-    index = torch.cat([p.entries.index + p.entries.index.new_tensor([offset, 0, 0])
-                       for p, offset in zip(problems, offsets)])
-    entries = AffinityEntries(index, torch.cat([p.entries.value for p in problems]),
-                              torch.cat([pad(p.entries.valid, False) for p in problems]))
-    return SamplerProblem(entries, torch.cat([pad(p.pairs, -1) for p in problems]),
-                          torch.cat([pad(p.index, m) for p in problems]), m)

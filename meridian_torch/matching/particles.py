@@ -26,9 +26,7 @@ with a random sign per particle: hashing every entry would cost as much as the d
 
 Cost: on the CPU the loop and the rounding are compiled (`matching.kernels`): one patch's
 particles at a time, in cache, each step in a few fused passes (3.4x less time than the torch
-loop, which stays for other devices: every step in place on the (P, m, N) buffers). Either way
-`match_submap` samples the pruned problems of all its patch chunks together
-(`particle_problem.concat_problems`), so the per-call overhead is paid once per match. On the
+loop, which stays for other devices: every step in place on the (P, m, N) buffers). On the
 CPU the bookkeeping around the loop is compiled too (the CSR rows, the particles' words, noise
 signs and start, the merge of identical sets): as torch ops over the P x m x N words and masks
 they cost a quarter of the time of the loop.
