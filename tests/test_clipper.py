@@ -435,3 +435,41 @@ def test_sparse_problem_scipy_products_equal_torch_csr_bitwise(seed: int) -> Non
         assert torch.equal(fast.cb_mv(u), plain.cb_mv(u))
     float32 = _SparseProblem(M_off.to(torch.float32), pattern.to(torch.float32), diag.float(), d.float())
     assert float32._scipy is None  # other dtypes (and devices) keep torch's products
+
+
+def _sparse_case(case: str) -> tuple[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor], ClipperConfig]:
+    """(n, edges, cfg) of the problems the compiled sparse solve is checked on."""
+    if case == "edgeless":
+        return 7, (torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
+                   torch.zeros(0, dtype=torch.float64)), ClipperConfig()
+    if case == "single":
+        return 1, (torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
+                   torch.zeros(0, dtype=torch.float64)), ClipperConfig()
+    if case == "penalty_grows":  # a dense weighted graph from a tiny penalty: d must grow many times
+        M, _ = planted_clique(80, 6, 11, p=0.6, lo=0.5, hi=1.0)
+        cfg = ClipperConfig(initial_d=1e-4, rounding="densest")
+    else:  # a weighted planted clique in noise
+        seed = int(case[-1])
+        M, _ = planted_clique([40, 200, 700][seed], 5 + 3 * seed, seed, p=0.05 + 0.05 * seed, lo=0.6, hi=1.0)
+        cfg = ClipperConfig(rounding=["clipper", "support", "densest"][seed])
+    i, j = torch.nonzero(torch.triu(M, 1) > 0, as_tuple=True)
+    return M.shape[0], (i, j, M[i, j]), cfg
+
+
+@pytest.mark.parametrize("case", ["noise0", "noise1", "noise2", "penalty_grows", "edgeless", "single"])
+def test_compiled_sparse_solve_takes_the_torch_solves_steps(case: str) -> None:
+    """The compiled continuous solve (`kernels.sparse_homotopy`) against torch's loop: the same
+    steps and inliers, u and the scores up to summation order."""
+    from meridian_torch.matching.clipper import solve_clipper_sparse
+
+    n, edges, cfg = _sparse_case(case)
+    ref, fast = (solve_clipper_sparse(n, edges, generator=torch.Generator().manual_seed(3), cfg=cfg, compiled=c)
+                 for c in (False, True))
+    assert torch.equal(fast.inliers, ref.inliers) and bool(fast.inliers.any())
+    assert torch.equal(fast.iterations, ref.iterations)
+    assert torch.equal(fast.penalty_updates, ref.penalty_updates) and torch.equal(fast.converged, ref.converged)
+    torch.testing.assert_close(fast.u, ref.u, rtol=0, atol=1e-10)
+    torch.testing.assert_close(fast.objective, ref.objective, rtol=1e-9, atol=0)
+    torch.testing.assert_close(fast.score, ref.score, rtol=1e-9, atol=0)
+    if case == "penalty_grows":
+        assert int(ref.penalty_updates[0]) >= 3

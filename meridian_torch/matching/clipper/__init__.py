@@ -7,7 +7,8 @@ graph. Only torch is needed for the solve; the exact "densest" rounding imports 
 
 Modules: `dense` (`solve_clipper` and its input checks), `sparse` (`solve_clipper_sparse` on
 sparse edges), `ascent` (the continuous solve both share: penalty homotopy around projected
-gradient ascent), `rounding` (continuous solution to a clique), `result` (`ClipperResult`).
+gradient ascent), `kernels` (that solve compiled, for one sparse CPU problem), `rounding`
+(continuous solution to a clique), `result` (`ClipperResult`).
 Names with a leading underscore are internal to the package.
 """
 

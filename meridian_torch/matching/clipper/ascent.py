@@ -120,13 +120,18 @@ def _initial_penalty(Au: Tensor, Cbu: Tensor, u: Tensor, cfg: ClipperConfig) -> 
     return torch.full((u.shape[0],), cfg.initial_d, dtype=u.dtype, device=u.device)
 
 
+def _tolerances(n: int, dtype: torch.dtype, cfg: ClipperConfig) -> tuple[float, float]:
+    """(tol_u, noise): the step tolerance and the rounding noise of an objective of size 1."""
+    noise = _NOISE_EPS_FACTOR * torch.finfo(dtype).eps * math.sqrt(n)
+    return max(cfg.tol_u, noise), noise
+
+
 def _homotopy(problem: "_DenseProblem | _SparseProblem", d: Tensor, u: Tensor, validf: Tensor,
               cfg: ClipperConfig) -> _SolveState:
     """The penalty loop on a problem whose Md already includes the penalty `d`."""
     B, n = u.shape
     dtype, device = u.dtype, u.device
-    noise = _NOISE_EPS_FACTOR * torch.finfo(dtype).eps * math.sqrt(n)
-    tol_u = max(cfg.tol_u, noise)
+    tol_u, noise = _tolerances(n, dtype, cfg)
     objective = torch.zeros(B, dtype=dtype, device=device)
     iterations = torch.zeros(B, dtype=torch.int64, device=device)
     penalty_updates = torch.zeros(B, dtype=torch.int64, device=device)
@@ -151,6 +156,22 @@ def _homotopy(problem: "_DenseProblem | _SparseProblem", d: Tensor, u: Tensor, v
     converged[live] = False
     return _SolveState(
         u=u, objective=objective, iterations=iterations, penalty_updates=penalty_updates, converged=converged
+    )
+
+
+def _compiled_homotopy(M_off: Tensor, d: Tensor, u: Tensor, cfg: ClipperConfig) -> _SolveState:
+    """`_homotopy` on one sparse CPU problem (M_off in CSR, unit diagonal, start u (1, n) and
+    penalty d (1,)) as one compiled call (`kernels.sparse_homotopy`); u is updated in place."""
+    from meridian_torch.matching.clipper.kernels import sparse_homotopy
+
+    tol_u, noise = _tolerances(u.shape[1], u.dtype, cfg)
+    objective, iterations, updates, converged = sparse_homotopy(
+        M_off.crow_indices().numpy(), M_off.col_indices().numpy(), M_off.values().numpy(), u[0].numpy(),
+        float(d[0]), tol_u, noise, cfg.eps, cfg.tol_F, cfg.beta, cfg.max_inner_iterations,
+        cfg.max_line_search_iterations, cfg.max_outer_iterations)
+    return _SolveState(
+        u=u, objective=torch.tensor([objective], dtype=u.dtype), iterations=torch.tensor([iterations]),
+        penalty_updates=torch.tensor([updates]), converged=torch.tensor([converged]),
     )
 
 

@@ -9,7 +9,13 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import ClipperConfig
-from meridian_torch.matching.clipper.ascent import _homotopy, _initial_penalty, _normalize, _SparseProblem
+from meridian_torch.matching.clipper.ascent import (
+    _compiled_homotopy,
+    _homotopy,
+    _initial_penalty,
+    _normalize,
+    _SparseProblem,
+)
 from meridian_torch.matching.clipper.result import ClipperResult, _density, _empty_result, _result
 from meridian_torch.matching.clipper.rounding import _round
 
@@ -79,6 +85,7 @@ def solve_clipper_sparse(
     *,
     generator: torch.Generator | None = None,
     cfg: ClipperConfig | None = None,
+    compiled: bool | None = None,
 ) -> ClipperResult:
     """`solve_clipper` for one problem given by its sparse affinity, never forming n x n matrices.
 
@@ -87,6 +94,8 @@ def solve_clipper_sparse(
         edges: (i, j, value) with i < j < n, each pair once: the positive off-diagonal entries of a symmetric M
             whose diagonal is one; the constraint graph is M's pattern (C = M > 0).
         generator, cfg: as for `solve_clipper` (the diagonal is one whatever `cfg.diagonal` says).
+        compiled: run the continuous solve as one compiled call (`kernels.sparse_homotopy`, the
+            same steps to rounding) instead of torch's loop; default: on CPU float64 edges.
 
     Each mat-vec costs O(edges + n) (`_SparseProblem`) instead of O(n^2); the start vector, steps
     and rounding are those of `solve_clipper` on the dense M (rounding works on the final support
@@ -115,7 +124,10 @@ def solve_clipper_sparse(
         u = unpenalized.mv(u)
     u = _normalize(u)
     d = _initial_penalty(unpenalized.mv(u), unpenalized.cb_mv(u), u, cfg)
-    state = _homotopy(_SparseProblem(M_off, pattern, diag, d.clone()), d, u, torch.ones_like(u), cfg)
+    if device.type == "cpu" and dtype == torch.float64 if compiled is None else compiled:
+        state = _compiled_homotopy(M_off, d, u, cfg)
+    else:
+        state = _homotopy(_SparseProblem(M_off, pattern, diag, d.clone()), d, u, torch.ones_like(u), cfg)
 
     # Rounding looks only at entries with u > 0: densify that support.
     members = torch.nonzero(state.u[0] > 0).flatten()
