@@ -156,7 +156,8 @@ def match_submap(
     # A group's sets, hypotheses and alignment depend on its patches alone, so on the CPU the
     # groups run side by side, one torch thread each: every stage after the associations uses
     # every core, not only the Langevin loop (the rest are one-thread kernels and small ops).
-    # The groups are the same for any thread count, and so are the results.
+    # The groups are the same for any thread count, and so are the results (a lone group runs on
+    # the caller's threads, as every match did before).
     threads = torch.get_num_threads() if device.type == "cpu" else 1
     parts = thread_map(
         lambda group: _group_hypotheses(ground, aerial, assoc, prior, seeds, group, cfg),
