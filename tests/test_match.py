@@ -230,7 +230,7 @@ def test_patch_groups_in_threads_give_the_results_of_one_thread(prior: float | N
     # On the CPU the patch groups run side by side, one torch thread each; the thread count must
     # decide only where a group runs, never what it computes.
     ground, patches, _, _ = scene()
-    other_ground, other_patches, _, _ = scene(seed=3)
+    _, other_patches, _, _ = scene(seed=3)
     batch = stack_primitive_sets(patches + other_patches + [_sized(patches[0], 6, 4)])
     cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=16, n_iterations=60), "patch_chunk": 2})
     threads = torch.get_num_threads()
