@@ -18,9 +18,11 @@ from meridian_torch.mapping.ground_observations import (
     edge_band,
     erode_masks,
     frame_observations,
+    group_key_runs,
     group_largest_cluster,
     group_outlier_mask,
     group_voxel_downsample,
+    group_voxel_runs,
     pixel_stride,
     separate_groups,
     voxel_hash,
@@ -89,6 +91,39 @@ def test_group_voxel_downsample_matches_loop():
         got = out[out_groups == g]
         got = got[np.argsort(voxel_hash(got, 0.5))]
         np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 300), st.integers(1, 8), st.sampled_from([2, 3]),
+       st.sampled_from([0.05, 0.1, 0.5]), st.sampled_from([1.0, 100.0, 2e5]))
+def test_group_voxel_runs_equal_the_sort_of_voxel_keys(seed, n, n_groups, dims, voxel, spread_voxels):
+    rng = np.random.default_rng(seed)
+    groups = np.sort(rng.integers(0, n_groups, n)) * int(rng.integers(1, 4))  # gaps between group ids
+    points = rng.normal(size=(n, dims)) * spread_voxels * voxel
+    points[rng.random(n) < 0.2] = points[0] if n else 0.0  # duplicates
+    points[: n // 4] = np.floor(points[: n // 4] / voxel) * voxel  # exactly on voxel faces
+    if rng.random() < 0.5:  # groups unsorted
+        groups = rng.permutation(groups)
+    order, first = group_voxel_runs(points, groups, voxel)
+    expected_order, expected_first = group_key_runs(voxel_hash(points, voxel), groups)
+    assert np.array_equal(order, expected_order)
+    assert np.array_equal(first, expected_first)
+
+
+def test_group_voxel_runs_of_ranges_beyond_one_key():
+    # 1.8e6 voxels along each axis and 4 groups: more than 2^62 (group, voxel) keys, the fallback sort
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-9e5, 9e5, (500, 3))
+    points[:2] = [[-9e5] * 3, [9e5 - 1] * 3]
+    groups = rng.integers(0, 4, 500)
+    order, first = group_voxel_runs(points, groups, 1.0)
+    expected_order, expected_first = group_key_runs(voxel_hash(points, 1.0), groups)
+    assert np.array_equal(order, expected_order) and np.array_equal(first, expected_first)
+
+
+def test_group_voxel_runs_rejects_out_of_range():
+    with pytest.raises(ValueError):
+        group_voxel_runs(np.array([[0.0, 0.0, 0.0], [2e6, 0.0, 0.0]]), np.zeros(2, np.int64), 1.0)
 
 
 def test_group_outlier_mask_matches_loop():

@@ -5,7 +5,9 @@ Clouds are (N, 2) or (N, 3) float64, sorted by group, with `starts` (G + 1,) the
 every group. A grid sorts a group's points by cell (x, y, z) and finds the columns of cells
 (x, y) through a hash table, so its memory follows the points, not the bounding box. Distances
 are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy's cKDTree, so
-the k-NN distances equal cKDTree's bitwise. The kernels release the GIL (frames run in threads).
+the k-NN distances equal cKDTree's bitwise. `group_voxel_order` is the stable (group, voxel)
+sort behind voxel downsampling and the DBSCAN cells. The kernels release the GIL (frames run in
+threads).
 """
 
 from __future__ import annotations
@@ -15,12 +17,14 @@ from numba import njit
 
 from meridian_torch.core.union_find import find_root
 
-__all__ = ["group_knn_distances", "group_dbscan_labels"]
+__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order"]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
 _SAMPLE = 16  # points whose k-NN distance sets a group's cell size
 _CELL_PER_KNN = 1.5  # cell size / median k-NN distance (KITTI 09 frames: 1.3-1.6 fastest, 1.0 is 1.4x slower)
 _TOL = 1e-12  # relative slack of the ring bound (rounding of coordinates up to ~1e7 is < 1e-15)
+_RADIX_BITS = 11  # digit of the radix sort: 3 passes sort a frame's (group, voxel) keys
+_KEY_LIMIT = 1 << 62  # (group, voxel) ranges beyond this many keys are left to the caller
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -405,3 +409,61 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
             if best < m:
                 label[a + order[p]] = label[a + best]
     return label
+
+
+@njit(cache=True, nogil=True)
+def group_voxel_order(points: np.ndarray, groups: np.ndarray, voxel_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Stable order of the rows by (group, voxel index floor(p / voxel_m) in x, y, z order): (order
+    (N,), first (N,) bool, True where a sorted row starts a run of equal (group, voxel), largest
+    |voxel index|). The order of np.lexsort((voxel keys, groups)) for any keys monotone in the
+    index (as `voxel_hash`): the voxel indices relative to their minimum and the group form one
+    integer key, sorted by a stable LSD radix sort. (N, 2) points use z index 0. When the ranges
+    do not fit one int64 key, order and first are empty (the caller sorts)."""
+    n, dims = points.shape
+    idx = np.zeros((n, 3), np.int64)
+    lo = np.zeros(4, np.int64)
+    hi = np.zeros(4, np.int64)
+    largest = 0
+    for i in range(n):
+        for ax in range(dims):
+            v = int(np.floor(points[i, ax] / voxel_m))
+            idx[i, ax] = v
+            largest = max(largest, abs(v))
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.bool_), 0
+    for ax in range(3):
+        lo[ax], hi[ax] = idx[:, ax].min(), idx[:, ax].max()
+    lo[3], hi[3] = groups.min(), groups.max()
+    # key = ((group * span_x + x) * span_y + y) * span_z + z, all relative to the minimum
+    span = hi - lo + 1
+    total = 1
+    for ax in (3, 0, 1, 2):
+        if span[ax] >= _KEY_LIMIT // total:
+            return np.zeros(0, np.int64), np.zeros(0, np.bool_), largest
+        total *= span[ax]
+    key = np.empty(n, np.int64)
+    for i in range(n):
+        key[i] = (((groups[i] - lo[3]) * span[0] + idx[i, 0] - lo[0]) * span[1] + idx[i, 1] - lo[1]) * span[2] \
+            + idx[i, 2] - lo[2]
+    order = np.arange(n)
+    other = np.empty(n, np.int64)
+    count = np.empty((1 << _RADIX_BITS) + 1, np.int64)
+    digit_mask = (1 << _RADIX_BITS) - 1
+    shift = 0
+    while shift == 0 or (total - 1) >> shift > 0:
+        count[:] = 0
+        for i in range(n):
+            count[((key[order[i]] >> shift) & digit_mask) + 1] += 1
+        for d in range(1, len(count)):
+            count[d] += count[d - 1]
+        for i in range(n):  # in the current order: equal digits keep it (stable)
+            d = (key[order[i]] >> shift) & digit_mask
+            other[count[d]] = order[i]
+            count[d] += 1
+        order, other = other, order
+        shift += _RADIX_BITS
+    first = np.empty(n, np.bool_)
+    first[0] = True
+    for i in range(1, n):
+        first[i] = key[order[i]] != key[order[i - 1]]
+    return order, first, largest
