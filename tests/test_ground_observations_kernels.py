@@ -1,5 +1,6 @@
 """The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
-group, and the outlier mask built on them against the former KD-tree computation (bitwise)."""
+group, the outlier mask built on them against the former KD-tree computation (bitwise), and the
+tracker's occluded-voxel test against a loop over all pairs."""
 
 from __future__ import annotations
 
@@ -8,8 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances
-from meridian_torch.mapping.ground_observations import group_outlier_mask, separate_groups
+from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances, voxels_reached
+from meridian_torch.mapping.ground_observations import (
+    group_outlier_mask,
+    separate_groups,
+    voxel_hash,
+    voxel_unhash,
+)
+from meridian_torch.mapping.ground_tracking import _COLUMN_OFFSETS
 
 
 def _cloud(rng: np.random.Generator, sizes: list[int], dims: int) -> tuple[np.ndarray, np.ndarray]:
@@ -154,3 +161,42 @@ def test_group_dbscan_border_tie_goes_to_the_lowest_row():
         label = group_dbscan_labels(points, w, np.array([0, 5]), 1.0, 5.0)
         assert label[rows.index(x)] == x_cluster
         assert np.array_equal(label, _dbscan_labels(points, w, 1.0, 5.0))
+
+
+# ------------------------------------------------------------------- occluded voxels reached
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 120), st.integers(0, 150), st.sampled_from([0.05, 0.1, 0.2]))
+def test_voxels_reached_match_all_pairs(seed, n_points, n_voxels, radius):
+    voxel = 0.1
+    rng = np.random.default_rng(seed)
+    raw = rng.normal(size=(n_points, 3)) * 0.3 + 500.0
+    raw[: n_points // 3] = np.round(raw[: n_points // 3] / 0.05) * 0.05  # on voxel faces and centres
+    keys, first = np.unique(voxel_hash(raw, voxel), return_index=True)
+    points = raw[first]
+    near = rng.normal(size=(n_voxels, 3)) * 0.3 + 500.0
+    voxel_keys = np.unique(voxel_hash(near, voxel))
+    centres = voxel_unhash(voxel_keys, voxel)
+    reached = voxels_reached(voxel_keys, centres, keys, points, _COLUMN_OFFSETS, radius)
+    # all pairs: points in the 27 voxels around, NumPy's norm
+    point_index = np.floor(points / voxel).astype(np.int64)
+    voxel_index = np.floor(centres / voxel).astype(np.int64)
+    expected = np.zeros(len(voxel_keys), dtype=bool)
+    for v in range(len(voxel_keys)):
+        around = (np.abs(point_index - voxel_index[v]) <= 1).all(axis=1)
+        expected[v] = bool((np.linalg.norm(points[around] - centres[v], axis=1) <= radius).any())
+    assert np.array_equal(reached, expected)
+
+
+def test_voxels_reached_at_exactly_the_radius_from_either_side():
+    voxel = 0.5  # binary-exact centres and distances
+    point = np.array([[0.5, 0.25, 0.25]])  # voxel (1, 0, 0), 0.25 from the centre of voxel (0, 0, 0)
+    cloud_keys = voxel_hash(point, voxel)
+    lone = voxel_hash(np.array([[0.25, 0.25, 0.25]]), voxel)
+    many = np.unique(voxel_hash(np.array([[0.25, 0.25, 0.25], [2.0, 2.0, 2.0], [-1.0, 0.0, 0.0]]), voxel))
+    for voxel_keys in (lone, many):  # searched from the voxels, then from the cloud
+        centres = voxel_unhash(voxel_keys, voxel)
+        reached = voxels_reached(voxel_keys, centres, cloud_keys, point, _COLUMN_OFFSETS, 0.25)
+        assert reached.tolist() == [bool(k == lone[0]) for k in voxel_keys]
+        assert not voxels_reached(voxel_keys, centres, cloud_keys, point, _COLUMN_OFFSETS, 0.2499).any()

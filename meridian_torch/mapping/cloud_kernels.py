@@ -6,7 +6,8 @@ every group. A grid sorts a group's points by cell (x, y, z) and finds the colum
 (x, y) through a hash table, so its memory follows the points, not the bounding box. Distances
 are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy's cKDTree, so
 the k-NN distances equal cKDTree's bitwise. `group_voxel_order` is the stable (group, voxel)
-sort behind voxel downsampling and the DBSCAN cells. The kernels release the GIL (frames run in
+sort behind voxel downsampling and the DBSCAN cells; `voxels_reached` the tracker's test of
+occluded voxels against a cloud on the same lattice. The kernels release the GIL (frames run in
 threads).
 """
 
@@ -17,7 +18,7 @@ from numba import njit
 
 from meridian_torch.core.union_find import find_root
 
-__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order"]
+__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order", "voxels_reached"]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
 _SAMPLE = 16  # points whose k-NN distance sets a group's cell size
@@ -467,3 +468,40 @@ def group_voxel_order(points: np.ndarray, groups: np.ndarray, voxel_m: float) ->
     for i in range(1, n):
         first[i] = key[order[i]] != key[order[i - 1]]
     return order, first, largest
+
+
+@njit(cache=True, nogil=True)
+def voxels_reached(
+    voxel_keys: np.ndarray, centres: np.ndarray, cloud_keys: np.ndarray, points: np.ndarray,
+    column_offsets: np.ndarray, radius: float,
+) -> np.ndarray:
+    """(Q,) whether a point of a cloud (sorted unique voxel `cloud_keys` (P,), one point each
+    (P, 3)) lies within `radius` of the centre (Q, 3) of each voxel of the sorted unique
+    `voxel_keys` (Q,). Only the 27 voxels around can hold one: `column_offsets` are the key
+    offsets of the lowest voxel of each of the 9 columns, whose 3 voxels are consecutive keys.
+    Searched from the smaller side. Distance sqrt((dx^2 + dy^2) + dz^2) of point - centre, NumPy's
+    `linalg.norm(axis=1)` for 3-vectors, so the decisions are the NumPy expression's."""
+    n_voxels, n_points = len(voxel_keys), len(cloud_keys)
+    reached = np.zeros(n_voxels, np.bool_)
+    if n_voxels == 0 or n_points == 0:
+        return reached
+    from_voxels = n_voxels <= n_points
+    small, large = (voxel_keys, cloud_keys) if from_voxels else (cloud_keys, voxel_keys)
+    for i in range(len(small)):
+        for o in column_offsets:
+            base = small[i] + o
+            pos = np.searchsorted(large, base)
+            for j in range(pos, min(pos + 3, len(large))):
+                if large[j] > base + 2:
+                    break
+                v, p = (i, j) if from_voxels else (j, i)
+                if reached[v]:
+                    continue
+                dx = points[p, 0] - centres[v, 0]
+                dy = points[p, 1] - centres[v, 1]
+                dz = points[p, 2] - centres[v, 2]
+                if np.sqrt((dx * dx + dy * dy) + dz * dz) <= radius:
+                    reached[v] = True
+            if from_voxels and reached[i]:
+                break
+    return reached

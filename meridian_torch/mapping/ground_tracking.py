@@ -42,6 +42,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from meridian_torch.config import GroundTrackingConfig
+from meridian_torch.mapping.cloud_kernels import voxels_reached
 from meridian_torch.mapping.ground_observations import (
     FrameObservations,
     group_largest_cluster,
@@ -135,21 +136,6 @@ def sorted_overlap(a: np.ndarray, b: np.ndarray) -> int:
     return int(_in_sorted(a, b).sum())
 
 
-def _neighbour_pairs(small: np.ndarray, large: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i, j) with large[j] one of the 27 voxel keys around small[i] (both sorted
-    unique). A z column's three keys (dz = -1, 0, 1) are consecutive integers, so one search per
-    (dx, dy) column finds them at the next three positions (1.5x faster than 27 searches)."""
-    base = (small[:, None] + _COLUMN_OFFSETS[None]).ravel()
-    pos = np.searchsorted(large, base)
-    pairs_small, pairs_large = [], []
-    for step in range(3):
-        at = np.minimum(pos + step, len(large) - 1)
-        hit = np.flatnonzero((pos + step < len(large)) & (large[at] <= base + 2))
-        pairs_small.append(hit // len(_COLUMN_OFFSETS))
-        pairs_large.append(at[hit])
-    return np.concatenate(pairs_small), np.concatenate(pairs_large)
-
-
 def association_scores(iom: np.ndarray, cosine: np.ndarray, cfg: GroundTrackingConfig) -> np.ndarray:
     """Score in [0, 1] of pairs (geometric mean of normalized IoM and cosine); -1 where invalid."""
     valid = (iom >= cfg.min_iom) & (cosine >= cfg.min_cosine)
@@ -210,19 +196,10 @@ class SegmentTracker:
 
     def _reached(self, occluded_keys: np.ndarray, keys: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(Q,) whether a point of a cloud (sorted unique `keys`, their `points`) lies within
-        unocclude_dist_m of each occluded voxel's centre. Only points in the 27 voxels around can;
-        the pairs of neighbouring voxels are looked up from the smaller side (the offsets are
-        symmetric)."""
-        reached = np.zeros(len(occluded_keys), dtype=bool)
-        if len(occluded_keys) == 0 or len(keys) == 0:
-            return reached
-        from_occluded = len(occluded_keys) <= len(keys)
-        small, large = (occluded_keys, keys) if from_occluded else (keys, occluded_keys)
-        at_small, at_large = _neighbour_pairs(small, large)
-        occ, pt = (at_small, at_large) if from_occluded else (at_large, at_small)
-        d = np.linalg.norm(points[pt] - voxel_unhash(occluded_keys[occ], self.cfg.segment_voxel_m), axis=1)
-        reached[occ[d <= self.cfg.unocclude_dist_m]] = True
-        return reached
+        unocclude_dist_m of each occluded voxel's centre (`voxels_reached`: only points in the 27
+        voxels around can)."""
+        centres = voxel_unhash(occluded_keys, self.cfg.segment_voxel_m)
+        return voxels_reached(occluded_keys, centres, keys, points, _COLUMN_OFFSETS, self.cfg.unocclude_dist_m)
 
     def _grow(self, seg: TrackedSegment, keys: np.ndarray, points: np.ndarray, coarse: np.ndarray,
               occluded_keys: np.ndarray) -> None:
