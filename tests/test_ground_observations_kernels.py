@@ -1,6 +1,6 @@
 """The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
 group, the outlier mask built on them against the former KD-tree computation (bitwise), and the
-tracker's occluded-voxel test against a loop over all pairs."""
+tracker's occluded-voxel test against a loop over all pairs and its sorted merge against np.insert."""
 
 from __future__ import annotations
 
@@ -9,7 +9,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances, voxels_reached
+from meridian_torch.mapping.cloud_kernels import (
+    group_dbscan_labels,
+    group_knn_distances,
+    merge_sorted_rows,
+    voxels_reached,
+)
 from meridian_torch.mapping.ground_observations import (
     group_outlier_mask,
     separate_groups,
@@ -200,3 +205,16 @@ def test_voxels_reached_at_exactly_the_radius_from_either_side():
         reached = voxels_reached(voxel_keys, centres, cloud_keys, point, _COLUMN_OFFSETS, 0.25)
         assert reached.tolist() == [bool(k == lone[0]) for k in voxel_keys]
         assert not voxels_reached(voxel_keys, centres, cloud_keys, point, _COLUMN_OFFSETS, 0.2499).any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 50), st.integers(0, 50), st.integers(0, 3))
+def test_merge_sorted_rows_equals_insert_at_searchsorted(seed, n, m, columns):
+    rng = np.random.default_rng(seed)
+    keys = np.sort(rng.integers(0, 40, n))  # duplicates and keys shared with the new ones
+    new_keys = np.sort(rng.integers(0, 40, m))
+    rows, new_rows = rng.normal(size=(n, columns)), rng.normal(size=(m, columns))
+    merged_keys, merged_rows = merge_sorted_rows(keys, rows, new_keys, new_rows)
+    pos = np.searchsorted(keys, new_keys)
+    assert np.array_equal(merged_keys, np.insert(keys, pos, new_keys))
+    assert np.array_equal(merged_rows, np.insert(rows, pos, new_rows, axis=0))

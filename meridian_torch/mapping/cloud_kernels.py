@@ -6,8 +6,8 @@ every group. A grid sorts a group's points by cell (x, y, z) and finds the colum
 (x, y) through a hash table, so its memory follows the points, not the bounding box. Distances
 are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy's cKDTree, so
 the k-NN distances equal cKDTree's bitwise. `group_voxel_order` is the stable (group, voxel)
-sort behind voxel downsampling and the DBSCAN cells; `voxels_reached` the tracker's test of
-occluded voxels against a cloud on the same lattice. The kernels release the GIL (frames run in
+sort behind voxel downsampling and the DBSCAN cells; `voxels_reached` and `merge_sorted_rows`
+the tracker's test of occluded voxels against a cloud on the same lattice and its growth. The kernels release the GIL (frames run in
 threads).
 """
 
@@ -18,7 +18,7 @@ from numba import njit
 
 from meridian_torch.core.union_find import find_root
 
-__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order", "voxels_reached"]
+__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order", "merge_sorted_rows", "voxels_reached"]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
 _SAMPLE = 16  # points whose k-NN distance sets a group's cell size
@@ -505,3 +505,26 @@ def voxels_reached(
             if from_voxels and reached[i]:
                 break
     return reached
+
+
+@njit(cache=True, nogil=True)
+def merge_sorted_rows(
+    keys: np.ndarray, rows: np.ndarray, new_keys: np.ndarray, new_rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted `keys` (N,) with their `rows` (N, C) and sorted `new_keys` (M,) with `new_rows`
+    merged into one sorted array in one pass: np.insert at np.searchsorted(keys, new_keys) (a new
+    key goes before equal old ones), without its index sort and copies."""
+    n, m = len(keys), len(new_keys)
+    out_keys = np.empty(n + m, keys.dtype)
+    out_rows = np.empty((n + m, rows.shape[1]), rows.dtype)
+    i = j = 0
+    for k in range(n + m):
+        if j < m and (i == n or new_keys[j] <= keys[i]):
+            out_keys[k] = new_keys[j]
+            out_rows[k] = new_rows[j]
+            j += 1
+        else:
+            out_keys[k] = keys[i]
+            out_rows[k] = rows[i]
+            i += 1
+    return out_keys, out_rows

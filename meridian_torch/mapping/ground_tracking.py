@@ -42,7 +42,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from meridian_torch.config import GroundTrackingConfig
-from meridian_torch.mapping.cloud_kernels import voxels_reached
+from meridian_torch.mapping.cloud_kernels import merge_sorted_rows, voxels_reached
 from meridian_torch.mapping.ground_observations import (
     FrameObservations,
     group_largest_cluster,
@@ -126,7 +126,8 @@ def _in_sorted(values: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
 
 def _insert_sorted(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
     """Sorted union of a sorted array and sorted keys it does not hold."""
-    return np.insert(sorted_keys, np.searchsorted(sorted_keys, new), new)
+    no_rows = np.empty((len(sorted_keys) + len(new), 0))
+    return merge_sorted_rows(sorted_keys, no_rows[: len(sorted_keys)], new, no_rows[len(sorted_keys):])[0]
 
 
 def sorted_overlap(a: np.ndarray, b: np.ndarray) -> int:
@@ -176,9 +177,7 @@ class SegmentTracker:
         new = ~_in_sorted(keys, seg.keys)
         keys, points = keys[new], points[new]
         if len(keys):
-            pos = np.searchsorted(seg.keys, keys)
-            seg.keys = np.insert(seg.keys, pos, keys)
-            seg.points = np.insert(seg.points, pos, points, axis=0)
+            seg.keys, seg.points = merge_sorted_rows(seg.keys, seg.points, keys, points)
             # incremental: merge the new coarse keys into the sorted set, grow the box
             coarse = np.unique(coarse[new])
             seg.iom_keys = _insert_sorted(seg.iom_keys, coarse[~_in_sorted(coarse, seg.iom_keys)])
