@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from meridian_torch.config import CloudCleanupConfig, GroundObservationConfig
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw
 from meridian_torch.io.camera import CameraModel
+from meridian_torch.mapping import ground_observations
 from meridian_torch.mapping.ground_observations import (
     _nonzero,
     edge_band,
@@ -378,6 +379,35 @@ def test_backprojection_of_fronto_parallel_plane():
     assert len(occ) and np.all((u_occ < e + 1.6) | (v_occ < e + 1.6) | (v_occ > 79 - e - 1.6))
     real = obs.points[obs.point_obs == 1]
     assert cKDTree(occ).query(real)[0].min() > cfg.occluded_clearance_m
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(-50, 50), st.floats(-np.pi, np.pi), st.sampled_from([0.1, 0.3]))
+def test_clearance_kernel_gives_the_kd_tree_observations(seed, x, yaw, clearance):
+    # the former clearance: one KD-tree over the occluded points of all masks moved apart
+    def kd_tree_within(queries, query_starts, points, point_starts, radius):
+        return np.isfinite(cKDTree(points).query(queries, distance_upper_bound=radius)[0])
+
+    rng = np.random.default_rng(seed)
+    camera = _camera()
+    depth = _ground_depth(camera) * (1.0 + 0.02 * rng.random((camera.height, camera.width))).astype(np.float32)
+    edges = np.sort(rng.choice(np.arange(1, camera.width), 5, replace=False))
+    masks = np.zeros((6, camera.height, camera.width), dtype=bool)
+    for m, (u0, u1) in enumerate(zip(np.r_[0, edges], np.r_[edges, camera.width])):  # strips to the edges
+        masks[m, camera.height // 2 + 1 :, u0:u1] = True
+    T_odom_camera = pose_from_xyz_yaw(np.array([x, 0.0, 0.0]), np.array(yaw)) @ camera.T_base_camera
+    cfg = GroundObservationConfig(pixel_stride=1, occluded_clearance_m=clearance,
+                                  cleanup=CloudCleanupConfig(dbscan_eps_m=0.6))
+    obs = frame_observations(masks, torch.eye(6), depth, T_odom_camera, 0.0, camera, cfg)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ground_observations, "group_any_within", kd_tree_within)
+        expected = frame_observations(masks, torch.eye(6), depth, T_odom_camera, 0.0, camera, cfg)
+    for field in ("points", "point_obs", "occluded", "occluded_obs", "mask_index"):
+        assert np.array_equal(getattr(obs, field), getattr(expected, field))
+    assert torch.equal(obs.descriptors, expected.descriptors)
+    unclear = frame_observations(masks, torch.eye(6), depth, T_odom_camera, 0.0, camera,
+                                 cfg.model_copy(update={"occluded_clearance_m": 0.0}))
+    assert len(obs.points) < len(unclear.points)  # the clearance deleted points
 
 
 def test_mask_without_depth_gives_no_observation():

@@ -1,15 +1,18 @@
 """The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
-group, the outlier mask built on them against the former KD-tree computation (bitwise), and the
-tracker's occluded-voxel test against a loop over all pairs and its sorted merge against np.insert."""
+group, the outlier mask and the occluded-point clearance built on them against the former
+KD-tree computations (bitwise), and the tracker's occluded-voxel test against a loop over all
+pairs and its sorted merge against np.insert."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from meridian_torch.mapping.cloud_kernels import (
+    group_any_within,
     group_dbscan_labels,
     group_knn_distances,
     merge_sorted_rows,
@@ -218,3 +221,137 @@ def test_merge_sorted_rows_equals_insert_at_searchsorted(seed, n, m, columns):
     pos = np.searchsorted(keys, new_keys)
     assert np.array_equal(merged_keys, np.insert(keys, pos, new_keys))
     assert np.array_equal(merged_rows, np.insert(rows, pos, new_rows, axis=0))
+# ----------------------------------------------------------------------------- any within
+
+
+def _tree_within(queries: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """The former clearance expression: cKDTree's neighbour within distance_upper_bound."""
+    if len(queries) == 0 or len(points) == 0:
+        return np.zeros(len(queries), dtype=bool)
+    return np.isfinite(cKDTree(points).query(queries, distance_upper_bound=radius)[0])
+
+
+def _clearance_clouds(rng: np.random.Generator, sizes: list[tuple[int, int]], dims: int, radius: float,
+                      step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per group (queries, points): queries on a lattice of `step` (a fraction of the radius: many
+    pairs exactly or nearly at the radius) over a wider box than the points, some far out; points
+    on the lattice, or just inside / at / outside the radius of a query, or continuous."""
+    queries, points = [], []
+    for n_q, n_p in sizes:
+        offset = rng.normal(size=dims) * 100.0
+        q = rng.integers(-12, 13, (n_q, dims)) * step
+        far = rng.random(n_q) < 0.1
+        q[far] += rng.normal(size=(int(far.sum()), dims)) * 50.0
+        kind = rng.integers(3)
+        if kind == 0 or n_q == 0:
+            p = rng.integers(-8, 9, (n_p, dims)) * step
+        elif kind == 1:  # on the sphere of a query, up to a few ulps in or out
+            u = rng.normal(size=(n_p, dims))
+            u /= np.linalg.norm(u, axis=1, keepdims=True)
+            p = q[rng.integers(n_q, size=n_p)] + u * radius * (1.0 + rng.integers(-3, 4, (n_p, 1)) * 1e-16)
+        else:
+            p = rng.normal(size=(n_p, dims)) * 8.0 * step
+        queries.append(q + offset)
+        points.append(p + offset)
+    q_groups = np.repeat(np.arange(len(sizes)), [n for n, _ in sizes])
+    p_groups = np.repeat(np.arange(len(sizes)), [n for _, n in sizes])
+    return (np.concatenate(queries) if queries else np.zeros((0, dims)), q_groups,
+            np.concatenate(points) if points else np.zeros((0, dims)), p_groups)
+
+
+_PAIR_SIZES = st.lists(st.tuples(st.sampled_from([0, 1, 3, 60, 200]), st.sampled_from([0, 1, 2, 48, 49, 300])),
+                       min_size=0, max_size=4)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), _PAIR_SIZES, st.sampled_from([2, 3]), st.sampled_from([0.1, 0.3, 1 / 3, 0.07, 0.5]),
+       st.sampled_from([1.0, 0.5, 0.25, 0.2, 1 / 3, 0.6]))
+def test_group_any_within_equals_kd_tree(seed, sizes, dims, radius, step):
+    rng = np.random.default_rng(seed)
+    queries, q_groups, points, p_groups = _clearance_clouds(rng, sizes, dims, radius, step * radius)
+    q_starts, p_starts = _starts(q_groups, len(sizes)), _starts(p_groups, len(sizes))
+    # each group on its own coordinates (lattice distances exactly at the radius)
+    within = group_any_within(queries, q_starts, points, p_starts, radius)
+    for g in range(len(sizes)):
+        expected = _tree_within(queries[q_groups == g], points[p_groups == g], radius)
+        assert np.array_equal(within[q_groups == g], expected)
+    # the clearance of frame_observations: one tree over the groups moved apart
+    both = separate_groups(np.concatenate([queries, points]), np.concatenate([q_groups, p_groups]), 1e6)
+    n = len(queries)
+    within = group_any_within(both[:n], q_starts, both[n:], p_starts, radius)
+    assert np.array_equal(within, _tree_within(both[:n], both[n:], radius))
+
+
+def test_group_any_within_is_strict_on_the_squared_radius():
+    # found iff 0 + dx*dx + dy*dy (+ dz*dz) < radius * radius, both rounded as cKDTree does
+    for radius in (0.5, 0.1, 0.3):
+        below = np.nextafter(radius, 0.0)
+        for dims in (2, 3):
+            pts = np.zeros((60, dims))  # a grid-searched group: more than 48 points
+            pts[:, 0] = 10.0 + np.arange(60)
+            pts[0, 0] = radius  # exactly at the radius
+            pts[1, :2] = [0.6 * radius, 0.8 * radius]  # at the radius up to rounding
+            queries = np.zeros((1, dims))
+            for rows in ([0], [1], [0, 1]):
+                p = pts[np.r_[rows, 2:60]]
+                got = group_any_within(queries, np.array([0, 1]), p, np.array([0, len(p)]), radius)
+                assert got.tolist() == _tree_within(queries, p, radius).tolist()
+            pts[0, 0] = below
+            got = group_any_within(queries, np.array([0, 1]), pts, np.array([0, 60]), radius)
+            assert got.tolist() == [True] == _tree_within(queries, pts, radius).tolist()
+    # 0.1 * 0.1 rounds to above 0.01: a point at 0.1 is outside, as for the tree
+    p = np.array([[0.1, 0.0]])
+    assert group_any_within(np.zeros((1, 2)), np.array([0, 1]), p, np.array([0, 1]), 0.1).tolist() == [False]
+    # pairs where sqrt(d2) < radius or the sum from z to x would decide otherwise (radius 0.1)
+    cases = [([-1.091, -1.355, 0.225], [-1.1538675917658108, -1.288678549012366, 0.2656094945112867], True),
+             ([0.869, 0.461, 0.488], [0.9634315653086254, 0.49321613820662685, 0.4946932736694637], True),
+             ([0.069, 0.208, 0.205], [0.05228941021916782, 0.1966491756039631, 0.10706167770118234], False)]
+    for point, query, inside in cases:
+        q = np.array([query])
+        for p in (np.array([point]), np.r_[[point], np.arange(180.0).reshape(60, 3) + 5.0]):  # brute, grid
+            got = group_any_within(q, np.array([0, 1]), p, np.array([0, len(p)]), 0.1)
+            assert got.tolist() == [inside] == _tree_within(q, p, 0.1).tolist()
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_group_any_within_finds_points_just_inside_across_cell_borders(dims):
+    # a point just inside the radius of each of many queries, in all directions and at all
+    # offsets to the grid's cells: none may be missed (the searched cells reach far enough)
+    rng = np.random.default_rng(dims)
+    radius = 0.1
+    n = 40000
+    queries = rng.uniform(0.0, 50.0, (n, dims)) + 1e6
+    u = rng.normal(size=(n, dims))
+    u[np.arange(n // 2), rng.integers(dims, size=n // 2)] *= 1e3  # half nearly along an axis
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = queries + u * radius * (1.0 - 1e-9)
+    d2 = np.zeros(len(points))
+    for a in range(dims):  # cKDTree's order
+        d2 = d2 + (points[:, a] - queries[:, a]) ** 2
+    q, p = queries[d2 < radius * radius], points[d2 < radius * radius]
+    assert len(q) > 0.99 * n
+    got = group_any_within(q, np.array([0, len(q)]), p, np.array([0, len(p)]), radius)
+    assert got.all() and np.array_equal(got, _tree_within(q, p, radius))
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 3]), st.sampled_from([0.0, -0.3, np.inf, np.nan, 1e-200, 1e3]),
+       st.sampled_from([1, 10, 100]))
+def test_group_any_within_odd_radii_and_queries(seed, dims, radius, n_points):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(n_points, dims))
+    queries = rng.normal(size=(30, dims)) * 2.0
+    queries[:4] = points[0]  # on a point
+    queries[4, 0], queries[5, 1], queries[6, :] = np.nan, np.inf, -np.inf  # the tree refuses these
+    queries[7] = 1e300
+    got = group_any_within(queries, np.array([0, 30]), points, np.array([0, n_points]), radius)
+    assert not got[4:7].any()
+    finite = np.r_[0:4, 7:30]
+    with np.errstate(over="ignore"):
+        assert np.array_equal(got[finite], _tree_within(queries[finite], points, radius))
+
+
+def test_group_any_within_of_nothing():
+    assert len(group_any_within(np.zeros((0, 3)), np.array([0]), np.zeros((0, 3)), np.array([0]), 0.1)) == 0
+    got = group_any_within(np.zeros((2, 3)), np.array([0, 1, 2]), np.zeros((1, 3)), np.array([0, 0, 1]), 0.1)
+    assert got.tolist() == [False, True]  # the first group has no points

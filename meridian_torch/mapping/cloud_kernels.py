@@ -1,14 +1,17 @@
-"""Compiled (numba) kernels for grouped point clouds: exact k-nearest-neighbour distances and DBSCAN
-labels, each group searched on its own uniform grid.
+"""Compiled (numba) kernels for grouped point clouds: exact k-nearest-neighbour distances, DBSCAN
+labels and whether a query has a point of its group within a radius, each group searched on its
+own uniform grid.
 
 Clouds are (N, 2) or (N, 3) float64, sorted by group, with `starts` (G + 1,) the first row of
 every group. A grid sorts a group's points by cell (x, y, z) and finds the columns of cells
-(x, y) through a hash table, so its memory follows the points, not the bounding box. Distances
+(x, y) through a hash table, so its memory follows the points, not the bounding box
+(group_any_within, for speed, through a dense table of at most max(16 n, 2^16) columns). Distances
 are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy's cKDTree, so
-the k-NN distances equal cKDTree's bitwise. `group_voxel_order` is the stable (group, voxel)
-sort behind voxel downsampling and the DBSCAN cells; `voxels_reached` and `merge_sorted_rows`
-the tracker's test of occluded voxels against a cloud on the same lattice and its growth. The kernels release the GIL (frames run in
-threads).
+the k-NN distances equal cKDTree's bitwise and `group_any_within` decides as
+cKDTree.query(distance_upper_bound=radius) (squared distance < radius * radius).
+`group_voxel_order` is the stable (group, voxel) sort behind voxel downsampling and the DBSCAN
+cells; `voxels_reached` and `merge_sorted_rows` the tracker's test of occluded voxels against a
+cloud on the same lattice and its growth. The kernels release the GIL (frames run in threads).
 """
 
 from __future__ import annotations
@@ -18,12 +21,16 @@ from numba import njit
 
 from meridian_torch.core.union_find import find_root
 
-__all__ = ["group_knn_distances", "group_dbscan_labels", "group_voxel_order", "merge_sorted_rows", "voxels_reached"]
+__all__ = [
+    "group_any_within", "group_dbscan_labels", "group_knn_distances", "group_voxel_order", "merge_sorted_rows",
+    "voxels_reached",
+]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
 _SAMPLE = 16  # points whose k-NN distance sets a group's cell size
 _CELL_PER_KNN = 1.5  # cell size / median k-NN distance (KITTI 09 frames: 1.3-1.6 fastest, 1.0 is 1.4x slower)
-_TOL = 1e-12  # relative slack of the ring bound (rounding of coordinates up to ~1e7 is < 1e-15)
+_CELL_PER_RADIUS = 3.0  # group_any_within's cell / radius (KITTI 09 frames: 3-4 fastest, 1 is 1.2x slower)
+_TOL = 1e-12  # relative slack of the ring bound and of group_any_within's reach (rounding of coordinates up to ~1e7 is < 1e-15)
 _RADIX_BITS = 11  # digit of the radix sort: 3 passes sort a frame's (group, voxel) keys
 _KEY_LIMIT = 1 << 62  # (group, voxel) ranges beyond this many keys are left to the caller
 
@@ -528,3 +535,90 @@ def merge_sorted_rows(
             out_rows[k] = rows[i]
             i += 1
     return out_keys, out_rows
+@njit(cache=True, nogil=True, inline="always")
+def _dist2_between(queries: np.ndarray, i: int, points: np.ndarray, j: int) -> float:
+    s = 0.0  # as _dist2: cKDTree's order
+    for a in range(points.shape[1]):
+        d = points[j, a] - queries[i, a]
+        s += d * d
+    return s
+
+
+@njit(cache=True, nogil=True)
+def group_any_within(queries: np.ndarray, query_starts: np.ndarray, points: np.ndarray, point_starts: np.ndarray,
+                     radius: float) -> np.ndarray:
+    """(N,) whether some point of each query's group has squared distance < radius * radius from
+    it, as cKDTree(points).query(queries, distance_upper_bound=radius)[0] < inf on groups moved
+    too far apart to pair. Groups without points give False; a group with non-finite points is
+    searched pair by pair (no grid); a non-finite query is within no finite radius.
+
+    A query searches the cells that [q - reach, q + reach] overlaps along each axis, reach a hair
+    above the radius; the columns (x, y) are found in a dense table (faster than the hash)."""
+    n, dims = queries.shape
+    out = np.zeros(n, np.bool_)
+    r2 = radius * radius  # as cKDTree: the bound squared (a negative radius counts as positive)
+    if not r2 > 0.0:  # 0 or NaN: nothing is strictly closer
+        return out
+    for g in range(len(query_starts) - 1):
+        qa, qb = query_starts[g], query_starts[g + 1]
+        a, b = point_starts[g], point_starts[g + 1]
+        if qa == qb or a == b:
+            continue
+        size = 0.0
+        extent = np.zeros(3)
+        for ax in range(dims):
+            size = max(size, np.abs(points[a:b, ax]).max())
+            extent[ax] = points[a:b, ax].max() - points[a:b, ax].min()
+        if r2 == np.inf or b - a <= _BRUTE_FORCE_MAX or not np.isfinite(extent.sum() + size):
+            for i in range(qa, qb):
+                for j in range(a, b):
+                    if _dist2_between(queries, i, points, j) < r2:
+                        out[i] = True
+                        break
+            continue
+        # a point within the radius of q lies in [q - reach, q + reach] along each axis even after
+        # rounding q +- reach (slack far above the rounding of coordinates up to size + radius),
+        # and cell indices are monotone in the coordinate: the searched cells hold all such points
+        reach = abs(radius) + _TOL * (size + abs(radius))
+        cell = max(_CELL_PER_RADIUS * reach, extent.max() / 2.0**20)  # bounded cell indices
+        while (np.floor(extent[0] / cell) + 1) * (np.floor(extent[1] / cell) + 1) > max(16 * (b - a), 1 << 16):
+            cell *= 2.0  # a bounded dense column table
+        lo, order, cells, shape, col_start, _, _ = _grid(points, a, b, cell)
+        grid_points = points[a + order]
+        z_of = cells[:, 2].copy()
+        col_of = np.full((shape[0], shape[1]), -1, np.int64)
+        for col in range(len(col_start) - 1):
+            col_of[cells[col_start[col], 0], cells[col_start[col], 1]] = col
+        first = np.zeros(3, np.int64)  # 2D: z cells 0 to 0
+        last = np.zeros(3, np.int64)
+        for i in range(qa, qb):
+            outside = False
+            for ax in range(dims):
+                f0 = np.floor((queries[i, ax] - reach - lo[ax]) / cell)  # as _grid
+                f1 = np.floor((queries[i, ax] + reach - lo[ax]) / cell)
+                if not (f1 >= 0.0 and f0 < shape[ax]):  # no occupied cell in reach (or NaN)
+                    outside = True
+                    break
+                first[ax] = int(max(f0, 0.0))
+                last[ax] = int(min(f1, shape[ax] - 1.0))
+            if outside:
+                continue
+            found = False
+            for x in range(first[0], last[0] + 1):
+                for y in range(first[1], last[1] + 1):
+                    col = col_of[x, y]
+                    if col < 0:
+                        continue
+                    e = col_start[col + 1]
+                    q = _z_from(z_of, col_start[col], e, first[2])
+                    while q < e and z_of[q] <= last[2]:
+                        if _dist2_between(queries, i, grid_points, q) < r2:
+                            found = True
+                            break
+                        q += 1
+                    if found:
+                        break
+                if found:
+                    break
+            out[i] = found
+    return out

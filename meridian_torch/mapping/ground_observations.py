@@ -14,8 +14,7 @@ For every mask of a frame (reference `Segmenter.segment`, paper III-A):
 
 All masks of a frame are processed together: the clouds are stored flat with an observation
 index (`point_obs`), and the point-cloud operations below work on such grouped clouds in one
-call (compiled kernels in `cloud_kernels` search each group on its own grid; groups shifted
-apart let one KD-tree serve them all).
+call (compiled kernels in `cloud_kernels` search each group on its own grid).
 
 Points are moved to the odom frame before the voxel grid, so every voxel key of the pipeline
 lives on one global lattice.
@@ -27,13 +26,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from meridian_torch.config import GroundObservationConfig
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
-from meridian_torch.mapping.cloud_kernels import group_dbscan_labels, group_knn_distances, group_voxel_order
+from meridian_torch.mapping.cloud_kernels import (
+    group_any_within,
+    group_dbscan_labels,
+    group_knn_distances,
+    group_voxel_order,
+)
 from meridian_torch.perception.protocols import SegmentDescriber, Segmenter
 
 __all__ = [
@@ -149,7 +152,8 @@ def group_voxel_downsample(
 
 
 def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.ndarray:
-    """Points of each group moved along x so that groups are at least `gap` apart (for one KD-tree)."""
+    """Points of each group moved along x so that groups are at least `gap` apart (the coordinates
+    the former KD-tree searches saw, kept so that distances stay bitwise the same)."""
     if len(points) == 0:
         return points.astype(np.float64)
     # per-group minimum by one sort and reduceat (np.minimum.at is ~10x slower); the sort is
@@ -365,10 +369,13 @@ def frame_observations(
     occ, occ_groups = band_pts, band_groups
     real, real_groups = values[~deep, :3], groups[~deep]
     if len(occ) and len(real) and cfg.occluded_clearance_m > 0:
-        gap = 1e6
-        both = separate_groups(np.concatenate([real, occ]), np.concatenate([real_groups, occ_groups]), gap)
-        d, _ = cKDTree(both[len(real):]).query(both[: len(real)], distance_upper_bound=cfg.occluded_clearance_m)
-        clear = ~np.isfinite(d)
+        # the groups moved apart as for the former KD-tree: the same coordinates give the same
+        # squared distances, hence the same points deleted. Both are sorted by group (voxel grid
+        # output, then filtered).
+        both = separate_groups(np.concatenate([real, occ]), np.concatenate([real_groups, occ_groups]), 1e6)
+        per_mask = np.arange(len(masks) + 1)
+        clear = ~group_any_within(both[: len(real)], np.searchsorted(real_groups, per_mask), both[len(real):],
+                                  np.searchsorted(occ_groups, per_mask), float(cfg.occluded_clearance_m))
         real, real_groups = real[clear], real_groups[clear]
 
     # observations = masks with real points left; renumber 0..K-1
