@@ -1,4 +1,4 @@
-"""The torch runtime: device, dtype and thread count, resolved once at the entry point."""
+"""The torch runtime: device, dtype and thread counts, resolved once at the entry point."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 from meridian_torch.config import RuntimeConfig
 from meridian_torch.errors import ConfigError
 
-__all__ = ["Runtime", "resolve_runtime", "peak_rss_mib", "current_rss_mib"]
+__all__ = ["Runtime", "resolve_runtime", "set_blas_threads", "peak_rss_mib", "current_rss_mib"]
 
 
 @dataclass(frozen=True)
@@ -22,15 +22,26 @@ class Runtime:
 
 
 def resolve_runtime(cfg: RuntimeConfig) -> Runtime:
-    """Pick the device and dtype; 'auto' means CUDA when present, else CPU."""
+    """Pick the device and dtype; 'auto' means CUDA when present, else CPU. Sets the thread counts."""
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
+    if cfg.blas_threads:
+        set_blas_threads(cfg.blas_threads)
     name = cfg.device
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"runtime.device: {cfg.device!r} requested but no CUDA device is available")
     return Runtime(device=torch.device(name), dtype=getattr(torch, cfg.dtype))
+
+
+def set_blas_threads(n: int) -> None:
+    """Threads of the BLAS libraries loaded so far (the OpenBLAS copies of NumPy, SciPy and
+    OpenCV; torch's are `torch.set_num_threads`'). Idle OpenBLAS threads spin on the cores they
+    would share with the pipeline's own threads (`runtime.blas_threads`)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=n, user_api="blas")
 
 
 def peak_rss_mib() -> float:

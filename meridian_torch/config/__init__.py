@@ -67,6 +67,10 @@ class RuntimeConfig(StrictModel):
     device: str = Field(default="cpu", pattern=r"^(cpu|auto|cuda(:\d+)?)$")
     dtype: Literal["float32", "float64"] = "float32"
     num_threads: int = Field(default=0, ge=0, description="torch CPU threads; 0 = torch's default")
+    blas_threads: int = Field(
+        default=1, ge=0,
+        description="threads of NumPy's, SciPy's and OpenCV's BLAS; 0 = the library's default (one per core)",
+    )
 
 
 class EvaluationConfig(StrictModel):

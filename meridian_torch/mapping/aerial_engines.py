@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from meridian_torch.errors import ConfigError
+from meridian_torch.runtime import set_blas_threads
 from meridian_torch.types import PatchGrid, PrimitiveSet
 
 if TYPE_CHECKING:
@@ -67,6 +68,7 @@ class _BlockDescriber:
 
     def __init__(self, ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper) -> None:
         torch.set_num_threads(1)  # the workers are the parallelism
+        set_blas_threads(1)
         self.state = (ortho, grid, mapper)
 
     def describe(self, indices: np.ndarray) -> BlockResult:
