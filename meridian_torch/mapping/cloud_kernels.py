@@ -30,7 +30,9 @@ _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faste
 _SAMPLE = 16  # points whose k-NN distance sets a group's cell size
 _CELL_PER_KNN = 1.5  # cell size / median k-NN distance (KITTI 09 frames: 1.3-1.6 fastest, 1.0 is 1.4x slower)
 _CELL_PER_RADIUS = 3.0  # group_any_within's cell / radius (KITTI 09 frames: 3-4 fastest, 1 is 1.2x slower)
-_TOL = 1e-12  # relative slack of the ring bound and of group_any_within's reach (rounding of coordinates up to ~1e7 is < 1e-15)
+# relative slack of the ring bound and of group_any_within's reach (rounding of coordinates up to
+# ~1e7 is < 1e-15)
+_TOL = 1e-12
 _RADIX_BITS = 11  # digit of the radix sort: 3 passes sort a frame's (group, voxel) keys
 _KEY_LIMIT = 1 << 62  # (group, voxel) ranges beyond this many keys are left to the caller
 
@@ -535,6 +537,8 @@ def merge_sorted_rows(
             out_rows[k] = rows[i]
             i += 1
     return out_keys, out_rows
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _dist2_between(queries: np.ndarray, i: int, points: np.ndarray, j: int) -> float:
     s = 0.0  # as _dist2: cKDTree's order
