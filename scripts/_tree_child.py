@@ -11,6 +11,20 @@ import sys
 from pathlib import Path
 
 
+def config_in_tree(config: Path | None, source: Path | str | None) -> Path | None:
+    """The config a run on `source` reads: a file of this checkout's configs/ becomes the same file
+    of `source` (each tree at its own shipped defaults; an older tree refuses keys added since),
+    any other path stays."""
+    if config is None or source is None:
+        return config
+    try:
+        relative = Path(config).resolve().relative_to(Path(__file__).resolve().parents[1] / "configs")
+    except ValueError:
+        return config
+    theirs = Path(source) / "configs" / relative
+    return theirs if theirs.exists() else config
+
+
 def run_in_tree(script: str, argv: list[str], source: Path | str | None, tag: str,
                 env: dict[str, str] | None = None) -> dict:
     """`python script *argv` with `source` first on PYTHONPATH (None: this environment's package);

@@ -16,7 +16,8 @@ and the per-frame thread pools at 1 thread; the perception thread still runs ahe
 clock is that thread's CPU time, so the stages add up to the process CPU and do not depend on the
 load. Every run is a fresh child process; `--baseline-src DIR` also runs another source tree (e.g.
 a worktree of an older commit: `git worktree add ../base <commit>`), alternating the two trees
-`--rounds` times, and prints them side by side (on a shared machine compare the CPU per frame).
+`--rounds` times, and prints them side by side (on a shared machine compare the CPU per frame); a
+config of this checkout's configs/ is read from the other tree's configs/ in its runs.
 
 Example: python scripts/bench_ground.py --threads 2 demo-sequence -c configs/demo.yaml
 """
@@ -31,7 +32,7 @@ import time
 import types
 from pathlib import Path
 
-from _tree_child import run_in_tree  # scripts/ is on sys.path when a script runs
+from _tree_child import config_in_tree, run_in_tree  # scripts/ is on sys.path when a script runs
 
 RESULT_TAG = "BENCH_GROUND_RESULT "
 REPO = Path(__file__).resolve().parents[1]
@@ -124,9 +125,10 @@ def comparison(results: list[tuple[str, dict]]) -> str:
     return "\n".join(lines)
 
 
-def _child_argv(args: argparse.Namespace) -> list[str]:
+def _child_argv(args: argparse.Namespace, source: Path) -> list[str]:
     argv = [] if args.sequence is None else [str(args.sequence)]
-    for flag, value in (("-c", args.config), ("--threads", args.threads), ("--frames", args.frames)):
+    config = config_in_tree(args.config, source)
+    for flag, value in (("-c", config), ("--threads", args.threads), ("--frames", args.frames)):
         if value is not None:
             argv += [flag, str(value)]
     for item in args.overrides:
@@ -154,7 +156,7 @@ def main() -> None:
     results = []
     for k in range(args.rounds):
         for label, source in trees:
-            result = run_in_tree(__file__, _child_argv(args), source, RESULT_TAG)
+            result = run_in_tree(__file__, _child_argv(args, source), source, RESULT_TAG)
             print(report(result), flush=True)
             results.append((f"{label} #{k + 1}" if args.rounds > 1 else label, result))
     if len(results) > 1:

@@ -17,7 +17,8 @@ then the final offline pass) on one sequence folder and prints:
 Each measurement runs in a fresh child process, so that its peak memory is its own.
 `--baseline-src DIR` runs the same measurement on another source tree (e.g. a git worktree of an
 older commit: `git worktree add ../base <commit>`) right after, and prints both side by side;
-the older tree may lack the sub-stage timings. `--passes N` replays the drive N times, forward
+the older tree may lack the sub-stage timings. A config of this checkout's configs/ is read from
+the other tree's configs/ in its run (each tree at its own defaults; older trees refuse new keys). `--passes N` replays the drive N times, forward
 and backward in turn (a physically continuous drive of N times the length: the robot retraces
 its path), to show that memory and frames/s do not depend on how long it drives.
 `--profile FILE` writes a cProfile of the run (open with `python -m pstats FILE` or snakeviz);
@@ -40,7 +41,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from _tree_child import run_in_tree  # scripts/ is on sys.path when a script runs
+from _tree_child import config_in_tree, run_in_tree  # scripts/ is on sys.path when a script runs
 
 RESULT_TAG = "BENCH_LOCALIZE_RESULT "
 REPO = Path(__file__).resolve().parents[1]
@@ -422,9 +423,11 @@ def report(results: list[tuple[str, dict]]) -> str:
     return "\n".join(lines)
 
 
-def _child_argv(args: argparse.Namespace, profile: bool) -> list[str]:
-    """The child's command line: this measurement's options (profiles only for this tree)."""
-    argv = [str(args.sequence), "-c", str(args.config), "--threads", str(args.threads), "--passes", str(args.passes)]
+def _child_argv(args: argparse.Namespace, source: Path, profile: bool) -> list[str]:
+    """The child's command line: this measurement's options (profiles only for this tree; a
+    shipped config as the tree's own copy)."""
+    config = config_in_tree(args.config, source)
+    argv = [str(args.sequence), "-c", str(config), "--threads", str(args.threads), "--passes", str(args.passes)]
     for item in args.overrides:
         argv += ["--set", item]
     for flag, value in (("--map", args.map), ("--frames", args.frames)):
@@ -466,9 +469,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not (args.sequence / "ground").is_dir():
         raise SystemExit(f"bench_localize: {args.sequence} is not a sequence folder (no ground/)")
-    results = [("this tree", run_in_tree(__file__, _child_argv(args, profile=True), REPO, RESULT_TAG))]
+    results = [("this tree", run_in_tree(__file__, _child_argv(args, REPO, profile=True), REPO, RESULT_TAG))]
     if args.baseline_src is not None:
-        baseline = run_in_tree(__file__, _child_argv(args, profile=False), args.baseline_src.resolve(), RESULT_TAG)
+        baseline = run_in_tree(__file__, _child_argv(args, args.baseline_src.resolve(), profile=False),
+                               args.baseline_src.resolve(), RESULT_TAG)
         results.append(("baseline", baseline))
     print(report(results))
     if args.json is not None:
