@@ -38,10 +38,11 @@ _KEY_LIMIT = 1 << 62  # (group, voxel) ranges beyond this many keys are left to 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _dist2(points: np.ndarray, i: int, j: int) -> float:
-    s = 0.0  # cKDTree's order: 0 + dx*dx, then + dy*dy, then + dz*dz
+def _dist2(points: np.ndarray, i: int, others: np.ndarray, j: int) -> float:
+    """Squared distance of points[i] and others[j] (often the same array)."""
+    s = 0.0  # cKDTree's order: 0 + dx*dx, then + dy*dy, then + dz*dz (the sign of d is exact)
     for a in range(points.shape[1]):
-        d = points[i, a] - points[j, a]
+        d = points[i, a] - others[j, a]
         s += d * d
     return s
 
@@ -134,7 +135,7 @@ def _knn_brute(points: np.ndarray, a: int, b: int, i: int, best: np.ndarray) -> 
     """best = the len(best) smallest squared distances from point i to rows a..b-1."""
     best[:] = np.inf
     for j in range(a, b):
-        d2 = _dist2(points, i, j)
+        d2 = _dist2(points, i, points, j)
         if d2 < best[-1]:  # rarely true after the first few, unlike in a cell's box
             _push(best, d2)
 
@@ -357,7 +358,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                     d = nb[t]
                     if d != c:
                         for q in range(cell_start[d], cell_start[d + 1]):
-                            if _dist2(grid_points, p, q) <= eps2:
+                            if _dist2(grid_points, p, grid_points, q) <= eps2:
                                 total += grid_weight[q]
                     t += 1
                 core[p] = total >= min_points
@@ -379,7 +380,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                     if not core[p]:
                         continue
                     for q in range(cell_start[d], cell_start[d + 1]):
-                        if core[q] and _dist2(grid_points, p, q) <= eps2:
+                        if core[q] and _dist2(grid_points, p, grid_points, q) <= eps2:
                             linked = True
                             break
                     if linked:
@@ -413,7 +414,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                 for q in range(cell_start[d], cell_start[d + 1]):
                     if not core[q]:
                         continue
-                    d2 = _dist2(grid_points, p, q)
+                    d2 = _dist2(grid_points, p, grid_points, q)
                     if d2 <= eps2 and (d2 < best_d2 or (d2 == best_d2 and order[q] < best)):
                         best_d2, best = d2, order[q]
             if best < m:
@@ -539,15 +540,6 @@ def merge_sorted_rows(
     return out_keys, out_rows
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _dist2_between(queries: np.ndarray, i: int, points: np.ndarray, j: int) -> float:
-    s = 0.0  # as _dist2: cKDTree's order
-    for a in range(points.shape[1]):
-        d = points[j, a] - queries[i, a]
-        s += d * d
-    return s
-
-
 @njit(cache=True, nogil=True)
 def group_any_within(queries: np.ndarray, query_starts: np.ndarray, points: np.ndarray, point_starts: np.ndarray,
                      radius: float) -> np.ndarray:
@@ -576,7 +568,7 @@ def group_any_within(queries: np.ndarray, query_starts: np.ndarray, points: np.n
         if r2 == np.inf or b - a <= _BRUTE_FORCE_MAX or not np.isfinite(extent.sum() + size):
             for i in range(qa, qb):
                 for j in range(a, b):
-                    if _dist2_between(queries, i, points, j) < r2:
+                    if _dist2(queries, i, points, j) < r2:
                         out[i] = True
                         break
             continue
@@ -616,7 +608,7 @@ def group_any_within(queries: np.ndarray, query_starts: np.ndarray, points: np.n
                     e = col_start[col + 1]
                     q = _z_from(z_of, col_start[col], e, first[2])
                     while q < e and z_of[q] <= last[2]:
-                        if _dist2_between(queries, i, grid_points, q) < r2:
+                        if _dist2(queries, i, grid_points, q) < r2:
                             found = True
                             break
                         q += 1

@@ -124,7 +124,9 @@ def solve_clipper_sparse(
         u = unpenalized.mv(u)
     u = _normalize(u)
     d = _initial_penalty(unpenalized.mv(u), unpenalized.cb_mv(u), u, cfg)
-    if device.type == "cpu" and dtype == torch.float64 if compiled is None else compiled:
+    if compiled is None:
+        compiled = device.type == "cpu" and dtype == torch.float64
+    if compiled:
         state = _compiled_homotopy(M_off, d, u, cfg)
     else:
         state = _homotopy(_SparseProblem(M_off, pattern, diag, d.clone()), d, u, torch.ones_like(u), cfg)
