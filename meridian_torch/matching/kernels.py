@@ -161,19 +161,30 @@ def _row_step(
     rmsprop: bool, first: bool, constants: np.ndarray, keep: float, norm2: np.ndarray,
 ) -> None:
     """One coordinate's step for every particle: v = g + noise; RMSprop; x = max(x + step, 0) *
-    keep; norm2 += x^2. One pass, so the row is read and written once."""
+    keep; norm2 += x^2. One pass, so the row is read and written once. The default dynamics
+    (noise and RMSprop) after the first step get a loop of its own without the flags' branches,
+    which numba does not hoist out of the loop: 10-15 % of the kernel, the same numbers."""
     eta, alpha, one_minus_alpha, tiny, zero = constants[0], constants[1], constants[2], constants[3], constants[4]
-    for c in range(x.shape[0]):
-        v = g[c] + noise_row[c] * scale[c] if noise else g[c]
-        if rmsprop:
-            hc = v * v if first else h[c] * alpha + one_minus_alpha * v * v
+    if noise and rmsprop and not first:
+        for c in range(x.shape[0]):
+            v = g[c] + noise_row[c] * scale[c]
+            hc = h[c] * alpha + one_minus_alpha * v * v
             h[c] = hc
-            xc = x[c] + eta * (v / (np.sqrt(hc) + tiny))
-        else:
-            xc = x[c] + eta * v
-        xc = max(xc, zero) * keep
-        x[c] = xc
-        norm2[c] += xc * xc
+            xc = max(x[c] + eta * (v / (np.sqrt(hc) + tiny)), zero) * keep
+            x[c] = xc
+            norm2[c] += xc * xc
+    else:
+        for c in range(x.shape[0]):
+            v = g[c] + noise_row[c] * scale[c] if noise else g[c]
+            if rmsprop:
+                hc = v * v if first else h[c] * alpha + one_minus_alpha * v * v
+                h[c] = hc
+                xc = x[c] + eta * (v / (np.sqrt(hc) + tiny))
+            else:
+                xc = x[c] + eta * v
+            xc = max(xc, zero) * keep
+            x[c] = xc
+            norm2[c] += xc * xc
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
