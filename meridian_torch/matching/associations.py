@@ -182,9 +182,11 @@ def _chunk_pairs(
     width = int(counts.max()) if counts.numel() > 0 else 0
     valid = torch.arange(width, device=flat.device)[None, :] < counts[:, None]
     order = flat[:, :width].masked_fill(~valid, 0)
-    pairs = torch.stack([order // max(n_aerial, 1), order % max(n_aerial, 1)], dim=-1)
-    pairs = pairs.masked_fill(~valid[..., None], -1)
-    cos = cosine.reshape(n_patches, n_pairs).gather(1, order).to(ground_desc.dtype).masked_fill(~valid, 0.0)
+    ground_index, aerial_index = order // max(n_aerial, 1), order % max(n_aerial, 1)
+    pairs = torch.stack([ground_index, aerial_index], dim=-1).masked_fill(~valid[..., None], -1)
+    # Indexed where einsum left it: flattening its (strided) output first copied all P G A values.
+    cos = cosine[torch.arange(n_patches, device=device)[:, None], ground_index, aerial_index]
+    cos = cos.to(ground_desc.dtype).masked_fill(~valid, 0.0)
     return pairs, valid, cos
 
 
