@@ -335,8 +335,8 @@ class MatchConfig(StrictModel):
         default=8,
         ge=1,
         description="patches matched together as one group (affinity, particles, registration, verification): "
-        "bounds peak memory; on the CPU the groups run side by side on torch's threads; results agree across "
-        "values up to affinity entries an ulp apart (README, Reproducibility)",
+        "bounds peak memory; on the CPU the groups run side by side on torch's threads; another value can round "
+        "a patch's affinity entries an ulp apart (README, Reproducibility)",
     )
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
     hypotheses_per_patch: int = Field(default=25, ge=1, description="L, clustered hypotheses kept per patch")
