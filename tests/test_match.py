@@ -207,7 +207,7 @@ def _sized(ps: PrimitiveSet, n_points: int, n_lines: int) -> PrimitiveSet:
 
 
 @pytest.mark.parametrize("prior", [None, YAW])
-def test_patch_chunking_does_not_change_results(prior: float | None) -> None:
+def test_patch_chunking_keeps_each_patchs_results(prior: float | None) -> None:
     # Chunks take patches by size and drop the padding none of their patches uses, so the
     # patches here differ in size, and some have no points or no lines. This checks the chunks'
     # bookkeeping: on real maps a patch's line-pair entries can round an ulp apart between
