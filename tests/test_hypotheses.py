@@ -1,5 +1,6 @@
-"""Greedy clustering of inlier sets: the compiled walk over the poses, torch's fixed-point sweeps
-over all pairs and the plain definition pick the same representatives and weights."""
+"""From inlier sets to hypotheses: the compiled registration of every set follows torch's batched
+registration; for the greedy clustering, the compiled walk over the poses, torch's fixed-point
+sweeps over all pairs and the plain definition pick the same representatives and weights."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.geometry.se2 import wrap_angle
-from meridian_torch.matching.hypotheses import _greedy_representatives, _representatives
+from meridian_torch.matching.associations import Associations
+from meridian_torch.matching.hypotheses import _greedy_representatives, _representatives, register_sets
+from meridian_torch.types import PrimitiveSet, stack_primitive_sets
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -101,3 +105,94 @@ def test_compiled_clustering_at_the_limits(dtype: torch.dtype) -> None:
     for got, want in zip(compiled, reference):
         assert torch.equal(got, want)
     assert compiled[0][:, 1:17].any() and not compiled[0][:, 1:17].all()  # both sides of the limits
+
+
+def _registration_scene(seed: int, dtype: torch.dtype) -> tuple:
+    """P patches that each see the ground submap moved by their own SE(2) (with noise and a few
+    extra primitives), associations by index with a few wrong and padded ones, and sets of every
+    kind: random members, empty, one point, lines through one point (nearly ambiguous), parallel
+    lines and a point, a zero-length line."""
+    gen = torch.Generator().manual_seed(seed)
+    n_points, n_lines, n_patches, n_sets = 9, 11, 3, 40
+    points = torch.rand(n_points, 2, generator=gen, dtype=torch.float64) * 60 - 30
+    lines = torch.rand(n_lines, 2, 2, generator=gen, dtype=torch.float64) * 60 - 30
+    lines[0] = torch.tensor([[0.0, 0.0], [10.0, 0.0]])  # 0-2: through the origin
+    lines[1] = torch.tensor([[0.0, 0.0], [0.0, 7.0]])
+    lines[2] = torch.tensor([[-3.0, -3.0], [4.0, 4.0]])
+    lines[3] = torch.tensor([[0.0, 5.0], [10.0, 5.0]])  # parallel to line 0
+    lines[4] = torch.tensor([[2.0, 2.0], [2.0, 2.0]])  # zero length
+    patches = []
+    for p in range(n_patches):
+        theta = float(torch.rand((), generator=gen)) * 2 * math.pi - math.pi
+        R = torch.tensor([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]], dtype=torch.float64)
+        t = torch.rand(2, generator=gen, dtype=torch.float64) * 400 - 200
+        a_pts = points @ R.T + t + 0.2 * torch.randn(n_points, 2, generator=gen, dtype=torch.float64)
+        a_lns = lines @ R.T + t + 0.2 * torch.randn(n_lines, 2, 2, generator=gen, dtype=torch.float64)
+        a_lns[4] = a_lns[4, :1]  # its image has zero length too
+        extra = p + 1  # patches of different sizes: padding in the batch
+        a_pts = torch.cat([a_pts, torch.rand(extra, 2, generator=gen, dtype=torch.float64) * 100 + t])
+        a_lns = torch.cat([a_lns, torch.rand(extra, 2, 2, generator=gen, dtype=torch.float64) * 100 + t])
+        patches.append(PrimitiveSet(a_pts.to(dtype), torch.zeros(len(a_pts), 4), torch.arange(len(a_pts)),
+                                    a_lns.to(dtype), torch.zeros(len(a_lns), dtype=torch.int64),
+                                    torch.zeros(len(a_lns), 4), torch.arange(len(a_lns))))
+    ground = PrimitiveSet(points.to(dtype), torch.zeros(n_points, 4), torch.arange(n_points), lines.to(dtype),
+                          torch.zeros(n_lines, dtype=torch.int64), torch.zeros(n_lines, 4), torch.arange(n_lines))
+    aerial = stack_primitive_sets(patches)
+    n_aerial_points = aerial.points_xy.shape[1]
+    k, m = n_points + 2, n_points + 2 + n_lines + 2  # two padded columns per block
+    pairs = torch.full((n_patches, m, 2), -1, dtype=torch.int64)
+    valid = torch.zeros(n_patches, m, dtype=torch.bool)
+    pairs[:, :n_points] = torch.arange(n_points)[:, None]
+    pairs[:, k:k + n_lines, 0] = n_points + torch.arange(n_lines)
+    pairs[:, k:k + n_lines, 1] = n_aerial_points + torch.arange(n_lines)
+    valid[:, :n_points] = valid[:, k:k + n_lines] = True
+    pairs[:, 1, 1] = n_points  # a wrong association: an extra aerial point
+    pairs[:, k + 5, 1] = n_aerial_points + n_lines  # and an extra aerial line
+    is_line = torch.arange(m) >= k
+    assoc = Associations(pairs=pairs, is_line=is_line.expand(n_patches, m).clone(), valid=valid,
+                         cosine=valid.float(), n_point_assoc=k, n_ground_points=n_points,
+                         n_aerial_points=n_aerial_points)
+    density = torch.rand(n_patches, n_sets, 1, generator=gen)
+    masks = torch.rand(n_patches, n_sets, m, generator=gen) < density
+    masks[:, 0] = False  # empty
+    masks[:, 1] = False
+    masks[:, 1, 2] = True  # one point
+    masks[:, 2] = False
+    masks[:, 2, [k, k + 1, k + 2]] = True  # lines through one point only
+    masks[:, 3] = False
+    masks[:, 3, [k, k + 3, 0]] = True  # two parallel lines and a point
+    masks[:, 4] = masks[:, 5]
+    masks[:, 4, k + 4] = True  # a zero-length line among others
+    masks[:, 6] = True  # padded columns too (invalid associations are not members)
+    sets = SimpleNamespace(masks=masks, valid=torch.rand(n_patches, n_sets, generator=gen) < 0.9)
+    return sets, assoc, ground, aerial
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_registration_of_sets_follows_the_torch_path(dtype: torch.dtype, seed: int) -> None:
+    # On the CPU every set is registered in one compiled pass over its mask (float64 inside),
+    # elsewhere by torch's batched ops in the inputs' dtype: the same poses and decisions to rounding.
+    sets, assoc, ground, aerial = _registration_scene(seed, dtype)
+    compiled = register_sets(sets, assoc, ground, aerial, compiled=True)
+    reference = register_sets(sets, assoc, ground, aerial, compiled=False)
+    rel = 1e-9 if dtype == torch.float64 else 2e-4
+    eps = RegistrationConfig()
+    # A decision can differ only for a value within rounding of its threshold.
+    clear = ((reference.condition - eps.information_eps).abs() > rel * (1 + reference.condition.abs())) & (
+        (reference.ambiguity_gap - eps.ambiguity_eps).abs() > rel * (1 + reference.ambiguity_gap.abs()))
+    assert torch.equal(compiled.valid[clear], reference.valid[clear])
+    ok = reference.valid & compiled.valid
+    assert ok.sum() > 20 and (~reference.valid & sets.valid).any()
+    assert not compiled.valid[:, :2].any() and not compiled.valid[~sets.valid].any()  # empty, one point: degenerate
+    # Poses: well conditioned sets within rounding of the coordinates (~200 m).
+    assert torch.allclose(compiled.theta[ok], reference.theta[ok], rtol=0, atol=300 * rel)
+    assert torch.allclose(compiled.t[ok], reference.t[ok], rtol=0, atol=300 * rel * 200)
+    assert torch.allclose(compiled.R[ok], reference.R[ok], rtol=0, atol=300 * rel)
+    for name in ("condition", "point_residual", "line_residual"):
+        a, b = getattr(compiled, name)[sets.valid], getattr(reference, name)[sets.valid]
+        assert torch.allclose(a, b, rtol=300 * rel, atol=300 * rel), name
+    finite = torch.isfinite(reference.ambiguity_gap) & ok
+    assert torch.equal(torch.isfinite(compiled.ambiguity_gap[ok]), torch.isfinite(reference.ambiguity_gap[ok]))
+    assert torch.allclose(compiled.ambiguity_gap[finite], reference.ambiguity_gap[finite], rtol=300 * rel, atol=300 * rel)
+    assert compiled.theta.dtype == compiled.t.dtype == dtype

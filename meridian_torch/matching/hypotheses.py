@@ -27,12 +27,13 @@ from torch import Tensor
 
 from meridian_torch.config.matching import RegistrationConfig
 from meridian_torch.core.timing import stage
-from meridian_torch.geometry.se2 import se2_matrix, wrap_angle
+from meridian_torch.geometry.se2 import rotation_matrix, se2_matrix, wrap_angle
 from meridian_torch.geometry.vectors import squared_norm2
 from meridian_torch.matching.associations import Associations
 from meridian_torch.matching.kernels import greedy_clusters
 from meridian_torch.matching.particles import InlierSets
 from meridian_torch.matching.registration import RegistrationResult, register_se2
+from meridian_torch.matching.registration_kernels import register_set_masks
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = ["Hypotheses", "register_sets", "cluster_hypotheses"]
@@ -96,12 +97,19 @@ def register_sets(
     ground: PrimitiveSet,
     aerial: PrimitiveBatch,
     config: RegistrationConfig | None = None,
+    compiled: bool | None = None,
 ) -> RegistrationResult:
     """Register all P x S sets in one `register_se2` call; fields reshaped to (P, S, ...).
 
     Points come from the set's point associations, lines from its line associations (unit
-    weights; everything else weight 0). `valid` is also False for padded sets.
+    weights; everything else weight 0). `valid` is also False for padded sets. `compiled`
+    (default: on CPU tensors) registers each set in one compiled pass over its mask
+    (`registration_kernels`, float64 inside: the same results to rounding), else torch's
+    batched ops (other devices, and the reference).
     """
+    cfg = config or RegistrationConfig()
+    if sets.masks.device.type == "cpu" if compiled is None else compiled:
+        return _register_sets_compiled(sets, assoc, ground, aerial, cfg)
     n_patches, n_sets, m = sets.masks.shape
     k = assoc.n_point_assoc
     src_pt, dst_pt, src_ln, dst_ln = _association_geometry(ground, aerial, assoc)
@@ -133,11 +141,46 @@ def register_sets(
     w_pt, i_pt = members(used[..., :k])
     w_ln, i_ln = members(used[..., k:])
     src_pt_c, dst_pt_c, src_ln_c, dst_ln_c = take(src_pt, i_pt), take(dst_pt, i_pt), take(src_ln, i_ln), take(dst_ln, i_ln)
-    result = register_se2(src_pt_c, dst_pt_c, w_pt, src_ln_c, dst_ln_c, w_ln, config=config)
+    result = register_se2(src_pt_c, dst_pt_c, w_pt, src_ln_c, dst_ln_c, w_ln, config=cfg)
     shaped = {name: getattr(result, name).reshape(n_patches, n_sets, *getattr(result, name).shape[1:])
               for name in result.__dataclass_fields__}
     shaped["valid"] = shaped["valid"] & sets.valid
     return RegistrationResult(**shaped)
+
+
+def _register_sets_compiled(
+    sets: InlierSets, assoc: Associations, ground: PrimitiveSet, aerial: PrimitiveBatch, cfg: RegistrationConfig
+) -> RegistrationResult:
+    """`register_sets` by `registration_kernels.register_set_masks` (CPU tensors)."""
+    dtype = aerial.points_xy.dtype
+    info = torch.finfo(dtype)
+    ground = ground.to(device=aerial.points_xy.device, dtype=dtype)
+    arrays = [
+        x.contiguous().numpy()
+        for x in (
+            sets.masks, assoc.valid, assoc.pairs, ground.points_xy, ground.line_endpoints, aerial.points_xy,
+            aerial.line_endpoints,
+        )
+    ]
+    theta, t, valid, condition, gap, point_residual, line_residual = (
+        torch.from_numpy(a)
+        for a in register_set_masks(
+            *arrays[:3], assoc.n_point_assoc, assoc.n_ground_points, assoc.n_aerial_points, *arrays[3:],
+            cfg.line_direction_weight, cfg.information_eps, cfg.ambiguity_eps, cfg.n_angle_samples,
+            cfg.newton_iterations, float(info.eps), float(info.tiny),
+        )
+    )
+    theta = theta.to(dtype)
+    return RegistrationResult(
+        theta=theta,
+        R=rotation_matrix(theta),
+        t=t.to(dtype),
+        valid=valid & sets.valid,
+        condition=condition.to(dtype),
+        ambiguity_gap=gap.to(dtype),
+        point_residual=point_residual.to(dtype),
+        line_residual=line_residual.to(dtype),
+    )
 
 
 def _representatives(
