@@ -1,7 +1,8 @@
 """From sampled inlier sets to the L weighted SE(2) hypotheses of every patch.
 
-Every unique set of every patch is registered in one batched `register_se2` call (ground
-submap = source, aerial patch = destination, so the result is T_world_odom). Sets whose
+Every unique set of every patch is registered (ground submap = source, aerial patch =
+destination, so the result is T_world_odom): on the CPU each set in one compiled pass over its
+mask (`registration_kernels`), elsewhere all in one batched `register_se2` call. Sets whose
 registration is invalid are dropped. The rest are clustered per patch greedily in J order
 (reference `Registerer2D.cluster_hypotheses`): a set joins the first earlier cluster
 representative within `translation_m` (Euclidean) and `rotation_deg` (wrapped yaw difference),

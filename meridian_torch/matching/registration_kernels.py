@@ -76,6 +76,8 @@ def register_set_masks(
     src_dir = np.empty((m, 2))
     dst_normal = np.empty((m, 2))
     line_w = np.empty(m)
+    H = np.empty((4, 4))
+    gv = np.empty(4)
 
     for p in range(n_patches):
         for s in range(n_sets):
@@ -124,8 +126,8 @@ def register_set_masks(
             cs0, cs1, cd0, cd1 = cs0 / total, cs1 / total, cd0 / total, cd1 / total
 
             # Normal equations H x = g in x = (cos θ, sin θ, tx, ty), as `register_se2`.
-            H = np.zeros((4, 4))
-            gv = np.zeros(4)
+            H[:] = 0.0
+            gv[:] = 0.0
             p_sq = ps0 = ps1 = 0.0
             for i in range(n_pt):
                 px, py = src_pt[i, 0] - cs0, src_pt[i, 1] - cs1
