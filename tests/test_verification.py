@@ -11,6 +11,7 @@ from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.verification import (
+    _chunked_alignment,
     alignment_score,
     line_pieces,
     piece_closeness,
@@ -93,7 +94,9 @@ def test_line_pieces_tile_each_line_in_equal_pieces(lengths: list[float], piece_
     assert i == len(pieces)
 
 
-def test_alignment_score_equals_a_per_pose_loop_with_padding() -> None:
+@pytest.mark.parametrize("compiled", [True, False])
+def test_alignment_score_equals_a_per_pose_loop_with_padding(compiled: bool) -> None:
+    # On the CPU one compiled pass over every pose (float64), elsewhere torch's ops: both the definition.
     gen = torch.Generator().manual_seed(3)
     cfg = VerificationConfig(line_distance_m=3.0, line_angle_deg=30.0, point_distance_m=4.0, line_piece_m=3.0)
     ground = _random_set(gen, 6, 9)
@@ -102,7 +105,7 @@ def test_alignment_score_equals_a_per_pose_loop_with_padding() -> None:
     theta = (torch.rand(3, 5, generator=gen, dtype=torch.float64) - 0.5) * 0.3
     t = (torch.rand(3, 5, 2, generator=gen, dtype=torch.float64) - 0.5) * 4
     T = se2_matrix(theta, t)
-    score = alignment_score(T, ground, stack_primitive_sets(patches), cfg)
+    score = alignment_score(T, ground, stack_primitive_sets(patches), cfg, compiled=compiled)
     expected = torch.tensor([[_loop_alignment(T[p, h], ground, patches[p], cfg) for h in range(5)] for p in range(3)],
                             dtype=torch.float64)
     assert expected.max() > 0  # the case exercises both outcomes
@@ -170,21 +173,41 @@ def test_reweighting_keeps_masses_when_nothing_aligns_and_checks_the_count() -> 
         reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 3)
 
 
-def test_reweighting_does_not_depend_on_the_chunk_size() -> None:
-    # Chunks take patches by size and drop unused padding: sizes differ, one patch has no points.
+def test_torch_alignment_does_not_depend_on_the_chunk_size() -> None:
+    # Other devices score a few patches at a time, by size, without unused padding: sizes differ,
+    # one patch has no points. The compiled CPU pass scores all at once: the same to rounding.
     gen = torch.Generator().manual_seed(5)
     ground = _random_set(gen, 4, 6)
     aerial = stack_primitive_sets([_random_set(gen, n_p, n_l) for n_p, n_l in ((5, 8), (0, 3), (9, 2), (2, 12))])
     T = se2_matrix((torch.rand(4, 6, generator=gen, dtype=torch.float64) - 0.5) * 0.2,
                    (torch.rand(4, 6, 2, generator=gen, dtype=torch.float64) - 0.5) * 6)
-    mass = torch.rand(4, 6, generator=gen, dtype=torch.float64) / 6
-    h = _hypotheses(T, mass, torch.rand(4, 6, generator=gen) > 0.2)
-    runs = [reweight_hypotheses(h, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=c), 4)
+    runs = [_chunked_alignment(T, ground, aerial, VerificationConfig(line_distance_m=4.0, chunk_pairs=c))
             for c in (1, 6 * 14 * 12 * 2, 10**6)]  # one patch, about two, all per chunk
-    assert not torch.allclose(runs[-1].probability, h.probability[:, :4])
-    for other in runs[1:]:
-        torch.testing.assert_close(runs[0].probability, other.probability)
-        torch.testing.assert_close(runs[0].T_world_odom, other.T_world_odom)
+    compiled = alignment_score(T, ground, aerial, VerificationConfig(line_distance_m=4.0), compiled=True)
+    assert (runs[-1] > 0).sum() > 4
+    for other in runs[1:] + [compiled]:
+        torch.testing.assert_close(runs[0], other)
+
+
+def test_compiled_alignment_follows_the_torch_ops_in_float32() -> None:
+    # Poses near real map coordinates (hundreds of metres) in float32: the compiled pass works in
+    # float64, torch's ops in float32, so they agree to float32 rounding of the coordinates.
+    gen = torch.Generator().manual_seed(8)
+    cfg = VerificationConfig()
+    ground = _random_set(gen, 7, 12)
+    patches = [_random_set(gen, n_p, n_l) for n_p, n_l in ((9, 30), (0, 14), (5, 0), (12, 25))]
+    offset = torch.tensor([412.0, -236.0], dtype=torch.float64)
+    for ps in patches:
+        ps.points_xy.add_(offset)
+        ps.line_endpoints.add_(offset)
+    T = se2_matrix((torch.rand(4, 20, generator=gen, dtype=torch.float64) - 0.5) * 0.3,
+                   offset + (torch.rand(4, 20, 2, generator=gen, dtype=torch.float64) - 0.5) * 6)
+    aerial = stack_primitive_sets(patches).to(dtype=torch.float32)
+    T32, ground32 = T.to(torch.float32), ground.to(dtype=torch.float32)
+    compiled = alignment_score(T32, ground32, aerial, cfg, compiled=True)
+    reference = alignment_score(T32, ground32, aerial, cfg, compiled=False)
+    assert compiled.dtype == torch.float32 and (reference > 1.0).sum() > 10
+    torch.testing.assert_close(compiled, reference, rtol=1e-4, atol=1e-3)
 
 
 @pytest.mark.parametrize(("radius", "dtype", "offset"), [

@@ -334,8 +334,9 @@ class MatchConfig(StrictModel):
     patch_chunk: int = Field(
         default=8,
         ge=1,
-        description="patches matched together as one group (affinity, particles, registration, verification): "
-        "bounds peak memory; on the CPU the groups run side by side on torch's threads; another value can round "
+        description="most patches matched together as one group (affinity, particles, registration, "
+        "verification); P patches form ceil(P / patch_chunk) groups of equal size: bounds peak memory; on the CPU "
+        "the groups run side by side on torch's threads; another value can round "
         "a patch's affinity entries an ulp apart (README, Reproducibility)",
     )
     verification: VerificationConfig = Field(default_factory=VerificationConfig)

@@ -20,7 +20,8 @@ passes over large intermediates, not arithmetic, were the cost.
   merge of identical sets (`matching.particles`), the same order and integers as torch's sorts.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 - `near_line_closeness`: verification's line score, walking `near_pairs`' grid; bitwise the torch
-  expressions.
+  expressions. `alignment_scores`: verification's whole alignment score (lines and points) of
+  every pose in float64, one grid per patch; equal to the torch path to rounding.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets", "mix_words",
+    "alignment_scores", "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets", "mix_words",
     "near_line_closeness", "near_pairs", "particle_words", "renumbered_entries", "round_particles", "signed_sigmas",
     "support_walks", "uniform_words",
 ]
@@ -356,6 +357,71 @@ def near_line_closeness(
                 ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
                 best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
             out[p, q] = best
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def alignment_scores(
+    T: np.ndarray,
+    piece_mid: np.ndarray,
+    piece_u: np.ndarray,
+    piece_length: np.ndarray,
+    ground_points: np.ndarray,
+    ends: np.ndarray,
+    line_u: np.ndarray,
+    line_valid: np.ndarray,
+    aerial_points: np.ndarray,
+    point_valid: np.ndarray,
+    cos_tol: float,
+    line_distance: float,
+    point_distance: float,
+    point_weight: float,
+) -> np.ndarray:
+    """`matching.verification.alignment_score` of poses T (P, H, 3, 3), float64 throughout: the
+    ground line pieces (midpoints, unit directions, lengths) and points moved by each pose, each
+    piece scored against its patch's valid segments (unit directions line_u) through `near_pairs`'
+    grid (built once per patch, not per chunk of poses), each point against every valid aerial
+    point."""
+    n_patches, n_poses = T.shape[0], T.shape[1]
+    out = np.zeros((n_patches, n_poses))
+    line2, point2 = line_distance * line_distance, point_distance * point_distance
+    for p in range(n_patches):
+        grid, starts, cell_segments = _segment_grid(ends[p], line_valid[p], line_distance)
+        for h in range(n_poses):
+            r00, r01, r10, r11, tx, ty = T[p, h, 0, 0], T[p, h, 0, 1], T[p, h, 1, 0], T[p, h, 1, 1], T[p, h, 0, 2], T[p, h, 1, 2]
+            score = 0.0
+            if len(cell_segments):
+                for n in range(piece_mid.shape[0]):
+                    px = r00 * piece_mid[n, 0] + r01 * piece_mid[n, 1] + tx
+                    py = r10 * piece_mid[n, 0] + r11 * piece_mid[n, 1] + ty
+                    c = _grid_cell(grid, px, py)
+                    if c < 0:
+                        continue
+                    ux = r00 * piece_u[n, 0] + r01 * piece_u[n, 1]
+                    uy = r10 * piece_u[n, 0] + r11 * piece_u[n, 1]
+                    best = 0.0
+                    for e in range(starts[c], starts[c + 1]):
+                        m = cell_segments[e]
+                        if abs(ux * line_u[p, m, 0] + uy * line_u[p, m, 1]) < cos_tol:
+                            continue
+                        ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
+                        abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
+                        t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, 1e-12)
+                        t = min(max(t, 0.0), 1.0)
+                        ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
+                        best = max(best, 1.0 - (ex * ex + ey * ey) / line2)
+                    score += best * piece_length[n]
+            points_score = 0.0
+            for g in range(ground_points.shape[0]):
+                qx = r00 * ground_points[g, 0] + r01 * ground_points[g, 1] + tx
+                qy = r10 * ground_points[g, 0] + r11 * ground_points[g, 1] + ty
+                best = 0.0
+                for a in range(aerial_points.shape[1]):
+                    if point_valid[p, a]:
+                        dx, dy = qx - aerial_points[p, a, 0], qy - aerial_points[p, a, 1]
+                        best = max(best, 1.0 - (dx * dx + dy * dy) / point2)
+                points_score += best
+            out[p, h] = score + point_weight * points_score
     return out
 
 

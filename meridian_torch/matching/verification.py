@@ -28,7 +28,7 @@ from meridian_torch.config.matching import VerificationConfig
 from meridian_torch.geometry.segments import squared_segment_distance
 from meridian_torch.geometry.vectors import dot2, squared_norm2
 from meridian_torch.matching.hypotheses import Hypotheses
-from meridian_torch.matching.kernels import near_line_closeness, near_pairs
+from meridian_torch.matching.kernels import alignment_scores, near_line_closeness, near_pairs
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = ["alignment_score", "line_pieces", "piece_closeness", "reweight_hypotheses", "segments_near_points"]
@@ -88,7 +88,8 @@ def piece_closeness(
 
 
 def alignment_score(
-    T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
+    T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig,
+    compiled: bool | None = None,
 ) -> Tensor:
     """(P, H) alignment (closeness-weighted metres of ground line + weighted points) of H poses per patch.
 
@@ -97,9 +98,14 @@ def alignment_score(
         ground: the submap (odom frame, metres).
         aerial: the P padded patches (world frame, metres).
         config: tolerances and the point weight.
+        compiled: (default: on CPU tensors) score every pose in one compiled pass
+            (`kernels.alignment_scores`, float64 inside: equal to rounding), else torch's ops
+            (other devices, and the reference).
     """
     dtype, device = T_world_odom.dtype, T_world_odom.device
     ground = ground.to(device=device, dtype=dtype)
+    if device.type == "cpu" if compiled is None else compiled:
+        return _compiled_alignment(T_world_odom, ground, aerial, config)
     R, t = T_world_odom[..., :2, :2], T_world_odom[..., :2, 2]
     score = T_world_odom.new_zeros(T_world_odom.shape[:2])
     if len(ground.line_endpoints) and aerial.line_endpoints.shape[1]:
@@ -123,6 +129,30 @@ def alignment_score(
     return score
 
 
+def _compiled_alignment(
+    T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
+) -> Tensor:
+    """`alignment_score` by `kernels.alignment_scores` (CPU tensors)."""
+    pieces = line_pieces(ground.line_endpoints, config.line_piece_m).to(torch.float64)
+    d = pieces[:, 1] - pieces[:, 0]
+    length = d.norm(dim=-1)
+    ends = aerial.line_endpoints.to(torch.float64)
+    ad = ends[:, :, 1] - ends[:, :, 0]
+    arrays = [
+        x.contiguous().numpy()
+        for x in (
+            T_world_odom.to(torch.float64), pieces.mean(1), d / length[:, None].clamp_min(1e-12), length,
+            ground.points_xy.to(torch.float64), ends, ad / ad.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+            aerial.line_valid, aerial.points_xy.to(torch.float64), aerial.point_valid,
+        )
+    ]
+    score = alignment_scores(
+        *arrays, math.cos(math.radians(config.line_angle_deg)), config.line_distance_m, config.point_distance_m,
+        config.point_weight_m,
+    )
+    return torch.from_numpy(score).to(T_world_odom.dtype)
+
+
 def _take(h: Hypotheses, order: Tensor, probability: Tensor) -> Hypotheses:
     def g(x: Tensor) -> Tensor:
         index = order.reshape(*order.shape, *(1,) * (x.dim() - 2)).expand(*order.shape, *x.shape[2:])
@@ -140,6 +170,28 @@ def _take(h: Hypotheses, order: Tensor, probability: Tensor) -> Hypotheses:
     )
 
 
+def _chunked_alignment(
+    T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig
+) -> Tensor:
+    """`alignment_score` by torch's ops, patches by size (largest first) in chunks of about
+    `config.chunk_pairs` (pose, ground primitive, aerial primitive) triples, each chunk padded
+    only to patches like its own."""
+    n_poses = T_world_odom.shape[1]
+    n_ground = max(len(line_pieces(ground.line_endpoints, config.line_piece_m)), len(ground.points_xy), 1)
+    size = torch.maximum(*aerial.used_lengths()).clamp_min(1)
+    by_size = torch.argsort(size, descending=True, stable=True)
+    score = T_world_odom.new_zeros(T_world_odom.shape[:2])
+    c0 = 0
+    while c0 < len(by_size):
+        chunk = max(1, config.chunk_pairs // (n_poses * n_ground * int(size[by_size[c0]])))
+        part = by_size[c0 : c0 + chunk]
+        score[part] = alignment_score(
+            T_world_odom[part], ground, aerial.select(part).trimmed(), config, compiled=False
+        )
+        c0 += chunk
+    return score
+
+
 def reweight_hypotheses(
     hypotheses: Hypotheses,
     ground: PrimitiveSet,
@@ -151,24 +203,18 @@ def reweight_hypotheses(
 
     Probabilities become mass x alignment rescaled to the patch's total mass over the H inputs
     (so they still sum to <= 1); a patch whose hypotheses all align nowhere keeps its masses.
-    Alignment is computed a few patches of similar size at a time, about `config.chunk_pairs`
-    (pose, ground primitive, aerial primitive) triples per chunk (memory).
+    On the CPU the alignment of every pose is one compiled pass; elsewhere it is computed a few
+    patches of similar size at a time, about `config.chunk_pairs` (pose, ground primitive, aerial
+    primitive) triples per chunk (memory).
     """
     h = hypotheses
     if n_hypotheses > h.valid.shape[1]:
         raise ValueError(f"n_hypotheses = {n_hypotheses} > the {h.valid.shape[1]} hypotheses given per patch")
     mass = torch.where(h.valid, h.probability, 0.0)
-    n_ground = max(len(line_pieces(ground.line_endpoints, config.line_piece_m)), len(ground.points_xy), 1)
-    # Patches by size (largest first) so that each chunk is padded only to patches like its own.
-    size = torch.maximum(*aerial.used_lengths()).clamp_min(1)
-    by_size = torch.argsort(size, descending=True, stable=True)
-    score = mass.new_zeros(mass.shape)
-    c0 = 0
-    while c0 < len(by_size):
-        chunk = max(1, config.chunk_pairs // (h.valid.shape[1] * n_ground * int(size[by_size[c0]])))
-        part = by_size[c0 : c0 + chunk]
-        score[part] = alignment_score(h.T_world_odom[part], ground, aerial.select(part).trimmed(), config)
-        c0 += chunk
+    if mass.device.type == "cpu":  # compiled: no (pose, primitive, primitive) tensors, so no chunks
+        score = alignment_score(h.T_world_odom, ground, aerial, config)
+    else:
+        score = _chunked_alignment(h.T_world_odom, ground, aerial, config)
     weight = mass * score
     total_weight = weight.sum(1, keepdim=True)
     probability = torch.where(
