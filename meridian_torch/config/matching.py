@@ -309,8 +309,9 @@ class VerificationConfig(StrictModel):
     chunk_pairs: int = Field(
         default=8_000_000,
         ge=1,
-        description="(pose, ground primitive, aerial primitive) triples evaluated at once; bounds memory to "
-        "about 10 bytes per triple",
+        description="(pose, ground primitive, aerial primitive) triples evaluated at once by torch's ops on "
+        "devices other than the CPU; bounds memory to about 10 bytes per triple (the CPU's compiled pass holds "
+        "no such tensors)",
     )
 
 
