@@ -344,20 +344,32 @@ def near_line_closeness(
             c = _grid_cell(grid, np.float64(px), np.float64(py))
             if c < 0:
                 continue
-            ux, uy = directions[p, q, 0], directions[p, q, 1]
-            best = zero
-            for e in range(starts[c], starts[c + 1]):
-                m = cell_segments[e]
-                if abs(ux * segment_directions[p, m, 0] + uy * segment_directions[p, m, 1]) < cos_tol:
-                    continue
-                ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
-                abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
-                t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, floor)
-                t = min(max(t, zero), one)
-                ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
-                best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
-            out[p, q] = best
+            out[p, q] = _closeness(
+                px, py, directions[p, q, 0], directions[p, q, 1], ends[p], segment_directions[p],
+                cell_segments[starts[c] : starts[c + 1]], cos_tol, floor, zero, one, radius2,
+            )
     return out
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _closeness(
+    px: float, py: float, ux: float, uy: float, ends: np.ndarray, segment_directions: np.ndarray,
+    segments: np.ndarray, cos_tol: float, floor: float, zero: float, one: float, radius2: float,
+) -> float:
+    """max(1 - d^2 / radius^2, 0) of the point (px, py) with unit direction (ux, uy) over the
+    `segments` (indices into ends (M, 2, 2), unit directions (M, 2)) within the angle; `zero`
+    without one. Every operation in the arguments' dtype."""
+    best = zero
+    for m in segments:
+        if abs(ux * segment_directions[m, 0] + uy * segment_directions[m, 1]) < cos_tol:
+            continue
+        ax, ay = ends[m, 0, 0], ends[m, 0, 1]
+        abx, aby = ends[m, 1, 0] - ax, ends[m, 1, 1] - ay
+        t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, floor)
+        t = min(max(t, zero), one)
+        ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
+        best = max(best, max(one - (ex * ex + ey * ey) / radius2, zero))
+    return best
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -388,7 +400,8 @@ def alignment_scores(
     for p in range(n_patches):
         grid, starts, cell_segments = _segment_grid(ends[p], line_valid[p], line_distance)
         for h in range(n_poses):
-            r00, r01, r10, r11, tx, ty = T[p, h, 0, 0], T[p, h, 0, 1], T[p, h, 1, 0], T[p, h, 1, 1], T[p, h, 0, 2], T[p, h, 1, 2]
+            r00, r01, tx = T[p, h, 0, 0], T[p, h, 0, 1], T[p, h, 0, 2]
+            r10, r11, ty = T[p, h, 1, 0], T[p, h, 1, 1], T[p, h, 1, 2]
             score = 0.0
             if len(cell_segments):
                 for n in range(piece_mid.shape[0]):
@@ -399,17 +412,10 @@ def alignment_scores(
                         continue
                     ux = r00 * piece_u[n, 0] + r01 * piece_u[n, 1]
                     uy = r10 * piece_u[n, 0] + r11 * piece_u[n, 1]
-                    best = 0.0
-                    for e in range(starts[c], starts[c + 1]):
-                        m = cell_segments[e]
-                        if abs(ux * line_u[p, m, 0] + uy * line_u[p, m, 1]) < cos_tol:
-                            continue
-                        ax, ay = ends[p, m, 0, 0], ends[p, m, 0, 1]
-                        abx, aby = ends[p, m, 1, 0] - ax, ends[p, m, 1, 1] - ay
-                        t = ((px - ax) * abx + (py - ay) * aby) / max(abx * abx + aby * aby, 1e-12)
-                        t = min(max(t, 0.0), 1.0)
-                        ex, ey = (ax + t * abx) - px, (ay + t * aby) - py
-                        best = max(best, 1.0 - (ex * ex + ey * ey) / line2)
+                    best = _closeness(
+                        px, py, ux, uy, ends[p], line_u[p], cell_segments[starts[c] : starts[c + 1]], cos_tol, 1e-12,
+                        0.0, 1.0, line2,
+                    )
                     score += best * piece_length[n]
             points_score = 0.0
             for g in range(ground_points.shape[0]):
