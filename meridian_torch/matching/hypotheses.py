@@ -100,7 +100,7 @@ def register_sets(
     config: RegistrationConfig | None = None,
     compiled: bool | None = None,
 ) -> RegistrationResult:
-    """Register all P x S sets in one `register_se2` call; fields reshaped to (P, S, ...).
+    """Register all P x S sets; the result's fields are shaped (P, S, ...).
 
     Points come from the set's point associations, lines from its line associations (unit
     weights; everything else weight 0). `valid` is also False for padded sets. `compiled`

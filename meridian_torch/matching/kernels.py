@@ -30,9 +30,9 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "alignment_scores", "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets", "mix_words",
-    "near_line_closeness", "near_pairs", "particle_words", "renumbered_entries", "round_particles", "signed_sigmas",
-    "support_walks", "uniform_words",
+    "alignment_scores", "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets",
+    "mix_words", "near_line_closeness", "near_pairs", "particle_words", "renumbered_entries", "round_particles",
+    "signed_sigmas", "support_walks", "uniform_words",
 ]
 
 # splitmix64's finaliser constants and shifts as unsigned words.
