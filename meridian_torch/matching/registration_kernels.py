@@ -68,11 +68,13 @@ def register_set_masks(
         grid_terms[j, 3] = math.sin(2.0 * grid[j])
     f_grid = np.empty(n_angle_samples)
 
-    # The members of one set: point ends (src, dst) and line ends, directions and weights.
+    # The members of one set: point ends (src, dst) and line ends, midpoints, directions and weights.
     src_pt = np.empty((m, 2))
     dst_pt = np.empty((m, 2))
     src_ln = np.empty((m, 2, 2))
     dst_ln = np.empty((m, 2, 2))
+    src_mid = np.empty((m, 2))
+    dst_mid = np.empty((m, 2))
     src_dir = np.empty((m, 2))
     dst_normal = np.empty((m, 2))
     line_w = np.empty(m)
@@ -94,10 +96,12 @@ def register_set_masks(
                     n_pt += 1
                 else:
                     g, a = pairs[p, j, 0] - n_ground_points, pairs[p, j, 1] - n_aerial_points
-                    for e in range(2):
-                        for d in range(2):
+                    for d in range(2):
+                        for e in range(2):
                             src_ln[n_ln, e, d] = ground_lines[g, e, d]
                             dst_ln[n_ln, e, d] = aerial_lines[p, a, e, d]
+                        src_mid[n_ln, d] = 0.5 * (src_ln[n_ln, 0, d] + src_ln[n_ln, 1, d])
+                        dst_mid[n_ln, d] = 0.5 * (dst_ln[n_ln, 0, d] + dst_ln[n_ln, 1, d])
                     sx, sy, src_ok = _unit_direction(src_ln[n_ln], eps)
                     dx, dy, dst_ok = _unit_direction(dst_ln[n_ln], eps)
                     # A zero-length line has no direction; it cannot constrain anything.
@@ -118,10 +122,10 @@ def register_set_masks(
             for i in range(n_ln):
                 v = line_w[i]
                 V += v
-                cs0 += v * 0.5 * (src_ln[i, 0, 0] + src_ln[i, 1, 0])
-                cs1 += v * 0.5 * (src_ln[i, 0, 1] + src_ln[i, 1, 1])
-                cd0 += v * 0.5 * (dst_ln[i, 0, 0] + dst_ln[i, 1, 0])
-                cd1 += v * 0.5 * (dst_ln[i, 0, 1] + dst_ln[i, 1, 1])
+                cs0 += v * src_mid[i, 0]
+                cs1 += v * src_mid[i, 1]
+                cd0 += v * dst_mid[i, 0]
+                cd1 += v * dst_mid[i, 1]
             total = max(W + V, tiny)
             cs0, cs1, cd0, cd1 = cs0 / total, cs1 / total, cd0 / total, cd1 / total
 
@@ -150,10 +154,8 @@ def register_set_masks(
                 if v == 0.0:
                     continue
                 nx, ny = dst_normal[i, 0], dst_normal[i, 1]
-                ax = 0.5 * (src_ln[i, 0, 0] + src_ln[i, 1, 0]) - cs0
-                ay = 0.5 * (src_ln[i, 0, 1] + src_ln[i, 1, 1]) - cs1
-                bx = 0.5 * (dst_ln[i, 0, 0] + dst_ln[i, 1, 0]) - cd0
-                by = 0.5 * (dst_ln[i, 0, 1] + dst_ln[i, 1, 1]) - cd1
+                ax, ay = src_mid[i, 0] - cs0, src_mid[i, 1] - cs1
+                bx, by = dst_mid[i, 0] - cd0, dst_mid[i, 1] - cd1
                 r0, r1, r2, r3 = nx * ax + ny * ay, ax * ny - ay * nx, nx, ny
                 target = nx * bx + ny * by
                 d0 = nx * src_dir[i, 0] + ny * src_dir[i, 1]
@@ -222,8 +224,7 @@ def register_set_masks(
                 v = line_w[i]
                 if v == 0.0:
                     continue
-                bx = 0.5 * (dst_ln[i, 0, 0] + dst_ln[i, 1, 0]) - cd0
-                by = 0.5 * (dst_ln[i, 0, 1] + dst_ln[i, 1, 1]) - cd1
+                bx, by = dst_mid[i, 0] - cd0, dst_mid[i, 1] - cd1
                 mean = 0.0
                 for e in range(2):
                     ex, ey = src_ln[i, e, 0] - cs0, src_ln[i, e, 1] - cs1
@@ -270,14 +271,35 @@ def _wrap(theta: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _cost(a_c: float, a_s: float, b_c: float, b_s: float, theta: float, order: int) -> float:
-    """Order-th derivative of f(θ) - a0 (`registration._angle_cost`)."""
-    c1, s1, c2, s2 = math.cos(theta), math.sin(theta), math.cos(2.0 * theta), math.sin(2.0 * theta)
+def _cost(a_c: float, a_s: float, b_c: float, b_s: float, c1: float, s1: float, c2: float, s2: float, order: int) -> float:
+    """Order-th derivative of f(θ) - a0 at cos θ, sin θ, cos 2θ, sin 2θ (`registration._angle_cost`)."""
     if order == 0:
         return a_c * c2 + a_s * s2 + b_c * c1 + b_s * s1
     if order == 1:
         return 2.0 * (a_s * c2 - a_c * s2) + b_s * c1 - b_c * s1
     return -4.0 * (a_c * c2 + a_s * s2) - b_c * c1 - b_s * s1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _refine(
+    a_c: float, a_s: float, b_c: float, b_s: float, start: float, step: float, newton_iterations: int, tiny: float
+) -> tuple[float, float]:
+    """Newton steps from the grid point `start`, clamped to its bracket of one step either side:
+    the angle and f(θ) - a0 there. The angle terms are taken once per step for both derivatives."""
+    lo, hi = start - step, start + step
+    theta = start
+    for _ in range(newton_iterations):
+        c1, s1, c2, s2 = math.cos(theta), math.sin(theta), math.cos(2.0 * theta), math.sin(2.0 * theta)
+        d1 = _cost(a_c, a_s, b_c, b_s, c1, s1, c2, s2, 1)
+        d2 = _cost(a_c, a_s, b_c, b_s, c1, s1, c2, s2, 2)
+        # Where f is not convex a Newton step would head for a maximum: walk downhill instead.
+        if d2 > 0:
+            theta = theta - d1 / max(d2, tiny)
+        else:
+            theta = theta - (1.0 if d1 > 0 else (-1.0 if d1 < 0 else 0.0)) * step
+        theta = min(max(theta, lo), hi)
+    f = _cost(a_c, a_s, b_c, b_s, math.cos(theta), math.sin(theta), math.cos(2.0 * theta), math.sin(2.0 * theta), 0)
+    return theta, f
 
 
 @njit(cache=True, nogil=True)
@@ -289,7 +311,7 @@ def _minimise_angle(
     its other local minimum (inf without one)."""
     n = grid.shape[0]
     for j in range(n):
-        f_grid[j] = a_c * grid_terms[j, 2] + a_s * grid_terms[j, 3] + b_c * grid_terms[j, 0] + b_s * grid_terms[j, 1]
+        f_grid[j] = _cost(a_c, a_s, b_c, b_s, grid_terms[j, 0], grid_terms[j, 1], grid_terms[j, 2], grid_terms[j, 3], 0)
     # The two lowest grid points that are local minima (strict on one side, as torch's rolls).
     first = second = -1
     for j in range(n):
@@ -301,26 +323,10 @@ def _minimise_angle(
         elif second < 0 or f < f_grid[second]:
             second = j
     has_second = second >= 0
-    thetas = np.empty(2)
-    refs = np.empty(2)
-    for bracket in range(2):
-        index = first if bracket == 0 else second
-        start = grid[max(index, 0)]
-        lo, hi = start - step, start + step
-        theta = start
-        for _ in range(newton_iterations):
-            d1 = _cost(a_c, a_s, b_c, b_s, theta, 1)
-            d2 = _cost(a_c, a_s, b_c, b_s, theta, 2)
-            # Where f is not convex a Newton step would head for a maximum: walk downhill instead.
-            if d2 > 0:
-                theta = theta - d1 / max(d2, tiny)
-            else:
-                theta = theta - (1.0 if d1 > 0 else (-1.0 if d1 < 0 else 0.0)) * step
-            theta = min(max(theta, lo), hi)
-        thetas[bracket] = theta
-        refs[bracket] = _cost(a_c, a_s, b_c, b_s, theta, 0)
-    best = thetas[0] if (refs[0] <= refs[1] or not has_second) else thetas[1]
+    theta0, f0 = _refine(a_c, a_s, b_c, b_s, grid[max(first, 0)], step, newton_iterations, tiny)
+    theta1, f1 = _refine(a_c, a_s, b_c, b_s, grid[max(second, 0)], step, newton_iterations, tiny)
+    best = theta0 if (f0 <= f1 or not has_second) else theta1
     # Two brackets that converge to one minimum are one candidate.
-    distinct = has_second and abs(_wrap(thetas[0] - thetas[1])) > 2.0 * step
-    gap = abs(refs[0] - refs[1]) if distinct else math.inf
+    distinct = has_second and abs(_wrap(theta0 - theta1)) > 2.0 * step
+    gap = abs(f0 - f1) if distinct else math.inf
     return _wrap(best), gap
