@@ -8,6 +8,8 @@ import numpy as np
 import shapely
 from scipy.spatial import Delaunay, QhullError
 
+from meridian_torch.mapping.primitives.delaunay import delaunay
+
 __all__ = ["alpha_shape_outline", "inside_box", "signed_area", "simplified_outline_edges"]
 
 # Only grid points at most this many cells from an empty cell are triangulated. A triangle with
@@ -83,6 +85,20 @@ def _boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
     return deep[idx[:, 0], idx[:, 1]] == 0
 
 
+def _triangulation(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+    """Delaunay triangles and their neighbours (scipy's conventions) of xy, or (None, None) for
+    degenerate input: compiled (`delaunay`), with qhull deciding the inputs it reports as
+    degenerate (collinear, duplicates)."""
+    simplices, neighbors, ok = delaunay(xy)
+    if ok:
+        return simplices, neighbors
+    try:
+        tri_obj = Delaunay(xy)
+    except (QhullError, ValueError):
+        return None, None
+    return tri_obj.simplices, tri_obj.neighbors
+
+
 def alpha_shape_outline(
     points: np.ndarray, alpha: float, grid_m: float, max_points: int | None = None
 ) -> np.ndarray | None:
@@ -106,13 +122,11 @@ def alpha_shape_outline(
     radius = 1.0 / alpha
     if len(pts) > BAND_MIN_POINTS:
         pts = pts[_boundary_band(cells, BAND_CELLS)]
-    # A deterministic jitter far below the grid breaks the co-circular quads of lattice input,
-    # which make qhull several times slower; the coordinates used below stay unjittered.
-    try:
-        tri_obj = Delaunay(pts + _jitter(len(pts)) * grid_m)
-    except (QhullError, ValueError):
+    # A deterministic jitter far below the grid breaks the co-circular quads of lattice input
+    # (which make the triangulation ambiguous); the coordinates used below stay unjittered.
+    simplices, neighbors = _triangulation(pts + _jitter(len(pts)) * grid_m)
+    if simplices is None:
         return None
-    simplices, neighbors = tri_obj.simplices, tri_obj.neighbors
     tri = pts[simplices]  # (T, 3, 2)
     step = tri[:, [1, 2, 0]] - tri
     side = np.sqrt(step[..., 0] ** 2 + step[..., 1] ** 2)  # (T, 3), as np.linalg.norm sums it

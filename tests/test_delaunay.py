@@ -1,0 +1,108 @@
+"""The compiled Delaunay triangulation (`mapping.primitives.delaunay`) against qhull and against
+the definition (no point inside a triangle's circumcircle)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import ConvexHull, Delaunay
+
+from meridian_torch.config.mapping import PrimitiveConfig
+from meridian_torch.mapping.primitives import outline
+from meridian_torch.mapping.primitives.delaunay import delaunay
+from meridian_torch.mapping.primitives.outline import alpha_shape_outline
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def _edges_to_neighbours(triangles: np.ndarray, neighbours: np.ndarray) -> dict:
+    """{(triangle's sorted corners, the shared edge's sorted corners): neighbour's sorted corners or None}."""
+    out = {}
+    for t, tri in enumerate(triangles):
+        for c in range(3):
+            edge = tuple(sorted((int(tri[(c + 1) % 3]), int(tri[(c + 2) % 3]))))
+            other = neighbours[t, c]
+            out[tuple(sorted(tri.tolist())), edge] = tuple(sorted(triangles[other].tolist())) if other >= 0 else None
+    return out
+
+
+def _points_inside_circumcircles(xy: np.ndarray, triangles: np.ndarray) -> int:
+    """How many (triangle, point) pairs have the point strictly inside the triangle's circumcircle,
+    by the in-circle determinant relative to its scale (the plain definition, every pair)."""
+    count = 0
+    for a, b, c in triangles:
+        rows = np.stack([np.concatenate([xy[v] - xy, ((xy[v] - xy) ** 2).sum(1, keepdims=True)], 1) for v in (a, b, c)], 1)
+        det = np.sign(_cross(xy[b] - xy[a], xy[c] - xy[a])) * np.linalg.det(rows)  # (n,): one per point d
+        inside = det > 1e-9 * np.abs(rows).max((1, 2)) ** 2
+        inside[[a, b, c]] = False
+        count += int(inside.sum())
+    return count
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 300), st.sampled_from([1.0, 1e3]))
+def test_random_points_give_qhulls_triangles_and_neighbours(seed: int, n: int, scale: float):
+    """Points in general position have one Delaunay triangulation: qhull's triangles and neighbours,
+    in another order; counter-clockwise."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-scale, scale, (n, 2)) + rng.uniform(-5e3, 5e3, 2)
+    triangles, neighbours, ok = delaunay(xy)
+    assert ok
+    reference = Delaunay(xy)
+    assert _edges_to_neighbours(triangles, neighbours) == _edges_to_neighbours(reference.simplices, reference.neighbors)
+    a, b, c = (xy[triangles[:, k]] for k in range(3))
+    assert (_cross(b - a, c - a) > 0).all()
+
+
+def test_jittered_lattices_are_delaunay_and_cover_their_hull():
+    """The outline's input (lattice points of a segment, jittered far below the grid): every circumcircle
+    is empty of points, the triangles tile the convex hull and use every point."""
+    rng = np.random.default_rng(5)
+    for trial in range(12):
+        side = int(rng.integers(4, 14))
+        g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2) * 0.25
+        g = g[rng.random(len(g)) < (1.0 if trial % 3 == 0 else 0.7)]
+        xy = g + rng.uniform(-2e3, 2e3, 2) + rng.uniform(-1e-6, 1e-6, g.shape) * 0.25
+        if len(xy) < 3:
+            continue
+        triangles, _, ok = delaunay(xy)
+        assert ok
+        assert _points_inside_circumcircles(xy, triangles) == 0
+        a, b, c = (xy[triangles[:, k]] for k in range(3))
+        assert np.isclose(0.5 * _cross(b - a, c - a).sum(), ConvexHull(xy).volume, rtol=1e-9)
+        assert set(triangles.ravel().tolist()) == set(range(len(xy)))
+
+
+def test_degenerate_input_is_reported():
+    line = np.stack([np.arange(10.0), 2.0 * np.arange(10.0)], 1)
+    for xy in (np.zeros((2, 2)), np.zeros((5, 2)), line):
+        triangles, neighbours, ok = delaunay(xy)
+        assert not ok and triangles.shape == neighbours.shape == (0, 3)
+
+
+def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):
+    """Segment-like shapes (lattices with notches and holes, as the outline band test draws them) get
+    the same alpha-shape outline from the compiled triangulation as from qhull's."""
+    cfg = PrimitiveConfig()
+    rng = np.random.default_rng(21)
+    shapes = 0
+    for _ in range(60):
+        spacing, r = rng.choice([0.1, 0.3]), rng.uniform(1.0, 8.0)
+        xs = np.arange(-r, r, spacing)
+        g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+        inside = (np.abs(g[:, 0]) < r * rng.uniform(0.3, 1.0)) & (np.abs(g[:, 1]) < r * rng.uniform(0.1, 1.0))
+        inside |= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) < rng.uniform(0.5, r)
+        inside &= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) > rng.uniform(0.0, 1.5)
+        pts = g[inside] + rng.uniform(-2000.0, 2000.0, 2)
+        compiled = alpha_shape_outline(pts, cfg.alpha, cfg.alpha_grid_m)
+        with monkeypatch.context() as m:
+            m.setattr(outline, "delaunay", lambda xy: (None, None, False))  # always ask qhull
+            reference = alpha_shape_outline(pts, cfg.alpha, cfg.alpha_grid_m)
+        assert (compiled is None) == (reference is None)
+        if compiled is not None:
+            shapes += 1
+            assert np.array_equal(compiled, reference)
+    assert shapes > 40
