@@ -1,8 +1,8 @@
 """Segment → primitive conversion: outlines, point/line classification and line fusion.
 
 `conversion.segments_to_primitives` is the entry point; `outline` holds the alpha-shape outline
-and its simplified edges (triangulated by `delaunay`, compiled), `line_fusion` the merging of fine
-lines into coarse ones.
+and its simplified edges (triangulated and walked by `outline_kernels`, compiled), `line_fusion` the
+merging of fine lines into coarse ones.
 
 A segment is a 2D point set in metres (aerial: world centres of its mask pixels; ground:
 flattened 3D points) with one semantic descriptor. Following the paper (section III-A) and the

@@ -8,7 +8,7 @@ import numpy as np
 import shapely
 from scipy.spatial import Delaunay, QhullError
 
-from meridian_torch.mapping.primitives.delaunay import delaunay
+from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
 
 __all__ = ["alpha_shape_outline", "inside_box", "signed_area", "simplified_outline_edges"]
 
@@ -148,8 +148,8 @@ def alpha_shape_outline(
         return None
     ends.sort(axis=1)
     edges = ends[np.argsort(ends[:, 0] * len(pts) + ends[:, 1])]
-    loops = _simple_loops(edges, len(pts))
-    if loops is None:  # a vertex shared by several boundary loops: let GEOS sort it out
+    loop_vertices, loop_starts, simple = simple_loops(edges, len(pts))
+    if not simple:  # a vertex shared by several boundary loops: let GEOS sort it out
         shape = shapely.union_all(shapely.get_parts(shapely.polygonize(shapely.linestrings(pts[edges]))))
         if not isinstance(shape, shapely.Polygon) or shape.is_empty:
             return None
@@ -157,7 +157,7 @@ def alpha_shape_outline(
     else:
         # Vertex-disjoint loops: union of the faces (holes filled) is one polygon iff the
         # largest loop encloses all others.
-        rings = [pts[loop] for loop in loops]
+        rings = [pts[loop_vertices[a:b]] for a, b in zip(loop_starts[:-1], loop_starts[1:])]
         if len(rings) > 1:
             ring = rings[int(np.argmax([abs(signed_area(r)) for r in rings]))]
             others = np.array([r[0] for r in rings if r is not ring])
@@ -168,40 +168,6 @@ def alpha_shape_outline(
     if signed_area(ring) < 0:
         ring = ring[::-1]
     return np.ascontiguousarray(ring)
-
-
-def _simple_loops(edges: np.ndarray, n_points: int) -> list[np.ndarray] | None:
-    """Closed vertex loops of an edge set (E, 2) of vertex ids below `n_points` in which every vertex
-    has two edges, else None.
-
-    Each loop starts at its smallest vertex and first steps to the other end of the first edge
-    (in `edges` order) holding it.
-    """
-    # Vertices relabelled 0..V-1 in increasing order (np.unique without its sort: ids < n_points).
-    used = np.zeros(n_points, dtype=bool)
-    used[edges] = True
-    verts = np.flatnonzero(used)
-    inverse = (np.cumsum(used) - 1)[edges]
-    v = inverse.ravel()
-    if len(v) != 2 * len(verts) or (np.bincount(v) != 2).any():
-        return None
-    other = inverse[:, ::-1].ravel()
-    order = np.argsort(v, kind="stable")
-    nbr = other[order].reshape(-1, 2).tolist()  # row x: the two neighbours of vertex x, in edge order
-    visited = [False] * len(nbr)
-    loops = []
-    for start in range(len(nbr)):
-        if visited[start]:
-            continue
-        loop, prev, cur = [start], start, nbr[start][0]
-        visited[start] = True
-        while cur != start:
-            loop.append(cur)
-            visited[cur] = True
-            a, b = nbr[cur]
-            prev, cur = cur, (a if a != prev else b)
-        loops.append(verts[loop])
-    return loops
 
 
 def signed_area(ring: np.ndarray) -> float:

@@ -1,4 +1,5 @@
-"""Compiled (numba) 2D Delaunay triangulation for the alpha-shape outlines of aerial segments.
+"""Compiled (numba) kernels of the alpha-shape outlines of segments: the 2D Delaunay triangulation
+(`delaunay`) and the walk of the boundary edges into loops (`simple_loops`).
 
 qhull (scipy.spatial.Delaunay) triangulates in any dimension through a lifted convex hull and
 costs 4-9 us per point plus ~0.2 ms per call; an aerial 60 m patch triangulates ~75 outlines
@@ -20,6 +21,9 @@ qhull's triangulation, and a test compares outlines of random segment shapes. Wh
 degenerate (fewer than 3 distinct points, all collinear) or a point cannot be placed (a
 duplicate), `delaunay` reports failure and the caller asks qhull, which decides those cases as
 before.
+
+`simple_loops` walks the boundary edges of the kept triangles into closed loops, integer for
+integer the loops of the NumPy sort and Python walk it replaced (a tenth of a patch's time).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["delaunay"]
+__all__ = ["delaunay", "simple_loops"]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -265,3 +269,63 @@ def delaunay(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
             h = opposite[3 * t + (c + 1) % 3]  # the edge opposite corner c
             neighbours[t, c] = h // 3 if h >= 0 else -1
     return triangles, neighbours, True
+
+
+@njit(cache=True, nogil=True)
+def simple_loops(edges: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Closed vertex loops of an edge set (E, 2) int64 of vertex ids below `n_points` in which every
+    vertex has exactly two edges: (the loops' vertex ids one after another, (L + 1,) loop starts,
+    True), else (empty, empty, False).
+
+    Loops come in the order of their smallest vertex; each starts there and first steps to the
+    other end of the first edge (in `edges` order) holding it.
+    """
+    empty = np.zeros(0, np.int64)
+    label = np.full(n_points, -1, np.int64)  # vertices relabelled 0..V-1 in increasing id order
+    for e in range(edges.shape[0]):
+        label[edges[e, 0]] = 0
+        label[edges[e, 1]] = 0
+    n_vertices = 0
+    for v in range(n_points):
+        if label[v] == 0:
+            label[v] = n_vertices
+            n_vertices += 1
+    if edges.shape[0] != n_vertices:
+        return empty, empty, False
+    vertex = np.empty(n_vertices, np.int64)
+    for v in range(n_points):
+        if label[v] >= 0:
+            vertex[label[v]] = v
+    # Each vertex's two neighbours in edge order.
+    neighbour = np.empty((n_vertices, 2), np.int64)
+    degree = np.zeros(n_vertices, np.int64)
+    for e in range(edges.shape[0]):
+        for side in range(2):
+            x, other = label[edges[e, side]], label[edges[e, 1 - side]]
+            if degree[x] == 2:
+                return empty, empty, False
+            neighbour[x, degree[x]] = other
+            degree[x] += 1
+    if (degree != 2).any():
+        return empty, empty, False
+    visited = np.zeros(n_vertices, np.bool_)
+    loops = np.empty(n_vertices, np.int64)
+    starts = np.empty(n_vertices + 1, np.int64)
+    n_loops, n = 0, 0
+    for start in range(n_vertices):
+        if visited[start]:
+            continue
+        starts[n_loops] = n
+        n_loops += 1
+        loops[n] = vertex[start]
+        n += 1
+        visited[start] = True
+        prev, cur = start, neighbour[start, 0]
+        while cur != start:
+            loops[n] = vertex[cur]
+            n += 1
+            visited[cur] = True
+            a, b = neighbour[cur, 0], neighbour[cur, 1]
+            prev, cur = cur, (a if a != prev else b)
+    starts[n_loops] = n
+    return loops, starts[: n_loops + 1].copy(), True

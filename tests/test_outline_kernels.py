@@ -1,5 +1,6 @@
-"""The compiled Delaunay triangulation (`mapping.primitives.delaunay`) against qhull and against
-the definition (no point inside a triangle's circumcircle)."""
+"""The outlines' compiled kernels (`mapping.primitives.outline_kernels`): the Delaunay triangulation
+against qhull and against the definition (no point inside a triangle's circumcircle), the boundary
+loops against a plain walk, and the outlines against qhull's triangulation."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from scipy.spatial import ConvexHull, Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.primitives import outline
-from meridian_torch.mapping.primitives.delaunay import delaunay
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
+from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -106,3 +107,54 @@ def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):
             shapes += 1
             assert np.array_equal(compiled, reference)
     assert shapes > 40
+
+
+def _reference_loops(edges: np.ndarray) -> list[list[int]] | None:
+    """The loops by their definition: every vertex has two edges; from the smallest unvisited vertex,
+    step to the other end of its first edge (in `edges` order), then always onward."""
+    neighbours: dict[int, list[int]] = {}
+    for a, b in edges.tolist():
+        neighbours.setdefault(a, []).append(b)
+        neighbours.setdefault(b, []).append(a)
+    if any(len(n) != 2 for n in neighbours.values()):
+        return None
+    loops, visited = [], set()
+    for start in sorted(neighbours):
+        if start in visited:
+            continue
+        loop, prev, cur = [start], start, neighbours[start][0]
+        visited.add(start)
+        while cur != start:
+            loop.append(cur)
+            visited.add(cur)
+            a, b = neighbours[cur]
+            prev, cur = cur, (a if a != prev else b)
+        loops.append(loop)
+    return loops
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.lists(st.integers(3, 12), min_size=1, max_size=5), st.booleans())
+def test_simple_loops_equal_the_plain_walk(seed: int, loop_sizes: list[int], pinch: bool):
+    """Disjoint polygons' edges (sorted as the outline sorts them) give the walk's loops; a vertex with
+    four edges (two loops pinched together) or a dangling edge gives no loops."""
+    rng = np.random.default_rng(seed)
+    n_points = sum(loop_sizes) + 5
+    ids = rng.permutation(n_points)
+    edges, used = [], 0
+    for size in loop_sizes:
+        ring = ids[used : used + size]
+        used += size
+        edges += [sorted((int(ring[k]), int(ring[(k + 1) % size]))) for k in range(size)]
+    if pinch and len(loop_sizes) > 1:  # the first vertex of loop 2 becomes the first vertex of loop 1
+        edges = [[int(ids[0]) if v == ids[loop_sizes[0]] else v for v in e] for e in edges]
+        edges = [sorted(e) for e in edges]
+    elif pinch:
+        edges.append(sorted((int(ids[0]), int(ids[-1]))))  # a dangling edge
+    edges = np.array(edges, dtype=np.int64)
+    edges = edges[np.argsort(edges[:, 0] * n_points + edges[:, 1])]
+    vertices, starts, ok = simple_loops(edges, n_points)
+    expected = _reference_loops(edges)
+    assert ok == (expected is not None) and ok != pinch
+    if ok:
+        assert [vertices[a:b].tolist() for a, b in zip(starts[:-1], starts[1:])] == expected
