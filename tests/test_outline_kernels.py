@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
-from meridian_torch.mapping.primitives import outline
+from meridian_torch.mapping.primitives import outline, outline_kernels
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
 from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
 
@@ -158,3 +158,34 @@ def test_simple_loops_equal_the_plain_walk(seed: int, loop_sizes: list[int], pin
     assert ok == (expected is not None) and ok != pinch
     if ok:
         assert [vertices[a:b].tolist() for a, b in zip(starts[:-1], starts[1:])] == expected
+
+
+def test_alpha_boundary_edges_are_the_edges_of_exactly_one_kept_triangle():
+    """On qhull triangulations of segment-like lattices: the kept triangles are those with
+    circumradius < r (abc / (4 area), the plain formula), and the boundary is every edge that
+    exactly one kept triangle has, sorted."""
+    rng = np.random.default_rng(13)
+    checked = 0
+    for _ in range(30):
+        side = int(rng.integers(5, 25))
+        g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2) * 0.3
+        g = g[(rng.random(len(g)) < 0.85) & (np.linalg.norm(g - g.mean(0), axis=1) < rng.uniform(1.0, 6.0))]
+        if len(g) < 4:
+            continue
+        pts = g + rng.uniform(-1e3, 1e3, 2)
+        tri = Delaunay(pts + rng.uniform(-1e-7, 1e-7, pts.shape))
+        radius = float(rng.choice([0.25, 0.5, 1.0]))
+        edges = outline_kernels.alpha_boundary_edges(pts, tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64), radius)
+        count: dict[tuple[int, int], int] = {}
+        for t in tri.simplices:
+            a, b, c = pts[t]
+            sides = np.linalg.norm(b - a) * np.linalg.norm(c - b) * np.linalg.norm(a - c)
+            area = 0.5 * abs(_cross(b - a, c - a))
+            if area > 0 and sides / (4.0 * area) < radius * (1 - 1e-9):
+                for k in range(3):
+                    edge = tuple(sorted((int(t[k]), int(t[(k + 1) % 3]))))
+                    count[edge] = count.get(edge, 0) + 1
+        expected = sorted(edge for edge, c in count.items() if c == 1)
+        assert edges.tolist() == [list(e) for e in expected]
+        checked += len(expected) > 0
+    assert checked > 20

@@ -23,6 +23,7 @@ from meridian_torch.mapping.primitives.outline import (
     inside_box,
     simplified_outline_edges,
 )
+from meridian_torch.mapping.primitives.outline_kernels import boundary_band, grid_means
 from meridian_torch.types import LineKind
 
 SPACING = 0.1
@@ -296,7 +297,7 @@ def test_grid_downsample_one_point_per_cell_equals_the_cell_means():
         sums = np.zeros((len(uniq), 2))
         for i, cell in enumerate(inv):  # the mean of every cell, one point at a time
             sums[cell] += pts[i]
-        means, cells = outline._grid_downsample(pts, CFG.alpha_grid_m)
+        means, cells = grid_means(pts, CFG.alpha_grid_m)
         assert np.array_equal(cells, uniq)
         expected = sums / counts[:, None]
         assert means.tobytes() == expected.tobytes()
@@ -321,7 +322,7 @@ def test_boundary_band_equals_closing_and_distance_transform():
         grid_cells[tuple((cells - lo).T)] = True
         closed = ndimage.binary_closing(grid_cells, structure=np.ones((3, 3), dtype=bool))
         expected = ndimage.distance_transform_edt(closed)[tuple((cells - lo).T)] <= outline.BAND_CELLS
-        band = outline._boundary_band(cells, outline.BAND_CELLS)
+        band = boundary_band(cells, outline.BAND_CELLS)
         sizes.add((bool(expected.all()), bool(expected.any())))
         assert np.array_equal(band, expected)
     assert (False, True) in sizes  # some cells deep inside, some in the band

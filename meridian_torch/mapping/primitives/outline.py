@@ -3,12 +3,17 @@ optionally simplified by Douglas-Peucker."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import shapely
 from scipy.spatial import Delaunay, QhullError
 
-from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
+from meridian_torch.mapping.primitives.outline_kernels import (
+    alpha_boundary_edges,
+    boundary_band,
+    delaunay,
+    grid_means,
+    simple_loops,
+)
 
 __all__ = ["alpha_shape_outline", "inside_box", "signed_area", "simplified_outline_edges"]
 
@@ -22,31 +27,6 @@ BAND_CELLS = 3.0
 BAND_MIN_POINTS = 400
 
 
-def _grid_downsample(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean point and integer cell of every occupied cell of the global lattice floor(p / grid)."""
-    cells = np.floor(points / grid_m).astype(np.int64)
-    lo = cells.min(axis=0)
-    width = int(cells[:, 1].max() - lo[1]) + 1
-    key = (cells[:, 0] - lo[0]) * width + (cells[:, 1] - lo[1])  # 1D keys: far faster to sort
-    size = int(cells[:, 0].max() - lo[0] + 1) * width
-    if size <= 8 * len(points) + 65536:  # a dense table of the bounding box: no sort needed
-        counts = np.bincount(key, minlength=size)
-        uniq = np.flatnonzero(counts)
-        if len(uniq) == len(points):
-            # One point per cell (aerial pixels are coarser than the grid): the mean is the point
-            # itself; + 0.0 turns -0.0 into 0.0 as the summing from 0.0 below does.
-            slot = np.empty(size, dtype=np.int64)
-            slot[key] = np.arange(len(points))
-            means = points[slot[uniq]] + 0.0
-        else:
-            sums = [np.bincount(key, points[:, k], minlength=size)[uniq] for k in range(2)]
-            means = np.stack(sums, axis=1) / counts[uniq, None]
-    else:
-        uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-        means = np.stack([np.bincount(inverse, points[:, k]) for k in range(2)], axis=1) / counts[:, None]
-    return means, np.stack([uniq // width + lo[0], uniq % width + lo[1]], axis=1)
-
-
 _JITTER = np.zeros((0, 2))
 
 
@@ -57,32 +37,6 @@ def _jitter(n: int) -> np.ndarray:
         _JITTER = np.random.default_rng(0).uniform(-1e-6, 1e-6, (max(n, 2 * len(_JITTER), 4096), 2))
         _JITTER.setflags(write=False)
     return _JITTER[:n]
-
-
-def _boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
-    """Mask of the cells at most `band_cells` from an empty cell (Euclidean, in cells).
-
-    Holes narrower than 3 cells are closed first: pixel lattices coarser than the grid leave
-    empty cell rows inside a segment (0.3 m pixels on 0.25 m cells), which would otherwise put
-    every point near an empty cell. A cell is farther than `band_cells` from every empty cell iff
-    the disc of that radius around it is all occupied, so the band is what an erosion by that
-    disc removes (OpenCV: a fraction of the cost of a distance transform on these small grids).
-    Outside the grid counts as empty, as in scipy's closing; the 2-cell empty margin keeps that
-    from reaching an occupied cell that the margin's own empty cells would not.
-    """
-    lo = cells.min(axis=0) - 2
-    shape = tuple(cells.max(axis=0) - lo + 3)
-    occupied = np.zeros(shape, dtype=np.uint8)
-    idx = cells - lo
-    occupied[idx[:, 0], idx[:, 1]] = 1
-    outside_empty = {"borderType": cv2.BORDER_CONSTANT, "borderValue": 0}
-    square = np.ones((3, 3), dtype=np.uint8)
-    occupied = cv2.erode(cv2.dilate(occupied, square, **outside_empty), square, **outside_empty)
-    r = int(np.floor(band_cells))
-    dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
-    disc = (dy**2 + dx**2 <= band_cells**2).astype(np.uint8)
-    deep = cv2.erode(occupied, disc, **outside_empty)
-    return deep[idx[:, 0], idx[:, 1]] == 0
 
 
 def _triangulation(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
@@ -113,41 +67,23 @@ def alpha_shape_outline(
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     if len(points) < 3:
         return None
-    pts, cells = _grid_downsample(points, grid_m)
+    pts, cells = grid_means(points, grid_m)
     while max_points is not None and len(pts) > max_points:
         grid_m *= 2.0
-        pts, cells = _grid_downsample(points, grid_m)
+        pts, cells = grid_means(points, grid_m)
     if len(pts) < 3:
         return None
     radius = 1.0 / alpha
     if len(pts) > BAND_MIN_POINTS:
-        pts = pts[_boundary_band(cells, BAND_CELLS)]
+        pts = pts[boundary_band(cells, BAND_CELLS)]
     # A deterministic jitter far below the grid breaks the co-circular quads of lattice input
     # (which make the triangulation ambiguous); the coordinates used below stay unjittered.
     simplices, neighbors = _triangulation(pts + _jitter(len(pts)) * grid_m)
     if simplices is None:
         return None
-    tri = pts[simplices]  # (T, 3, 2)
-    step = tri[:, [1, 2, 0]] - tri
-    side = np.sqrt(step[..., 0] ** 2 + step[..., 1] ** 2)  # (T, 3), as np.linalg.norm sums it
-    u, v = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    twice_area = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
-    # circumradius R = abc / (4 area); written without division to keep slivers (area 0) out
-    keep = side.prod(axis=1) < radius * 2.0 * twice_area
-    if not keep.any():
+    edges = alpha_boundary_edges(pts, simplices, neighbors, radius)
+    if len(edges) < 3:
         return None
-    # Boundary edges: the edges of kept triangles whose neighbour across (opposite vertex k) is
-    # missing or not kept, i.e. the edges in exactly one kept triangle; sorted by vertex pair.
-    kept = np.flatnonzero(keep)
-    nb = neighbors[kept]
-    open_side = (nb < 0) | ~keep[np.maximum(nb, 0)]
-    t_idx, k_idx = np.nonzero(open_side)
-    s_kept = simplices[kept]
-    ends = np.stack([s_kept[t_idx, (k_idx + 1) % 3], s_kept[t_idx, (k_idx + 2) % 3]], axis=1)
-    if len(ends) < 3:
-        return None
-    ends.sort(axis=1)
-    edges = ends[np.argsort(ends[:, 0] * len(pts) + ends[:, 1])]
     loop_vertices, loop_starts, simple = simple_loops(edges, len(pts))
     if not simple:  # a vertex shared by several boundary loops: let GEOS sort it out
         shape = shapely.union_all(shapely.get_parts(shapely.polygonize(shapely.linestrings(pts[edges]))))

@@ -1,5 +1,10 @@
-"""Compiled (numba) kernels of the alpha-shape outlines of segments: the 2D Delaunay triangulation
-(`delaunay`) and the walk of the boundary edges into loops (`simple_loops`).
+"""Compiled (numba) kernels of the alpha-shape outlines of segments (`outline.alpha_shape_outline`):
+the grid's cell means (`grid_means`), the band of cells near the border (`boundary_band`), the 2D
+Delaunay triangulation (`delaunay`), the boundary of the alpha complex (`alpha_boundary_edges`)
+and its walk into loops (`simple_loops`). As qhull, NumPy, OpenCV and Python code they took about
+half of building an aerial patch, much of it in per-segment call overheads (a 60 m patch has ~75
+segments); every kernel but `delaunay` computes bit for bit what that code computed (tests against
+the plain definitions), and the maps named below are byte for byte the same.
 
 qhull (scipy.spatial.Delaunay) triangulates in any dimension through a lifted convex hull and
 costs 4-9 us per point plus ~0.2 ms per call; an aerial 60 m patch triangulates ~75 outlines
@@ -21,9 +26,6 @@ qhull's triangulation, and a test compares outlines of random segment shapes. Wh
 degenerate (fewer than 3 distinct points, all collinear) or a point cannot be placed (a
 duplicate), `delaunay` reports failure and the caller asks qhull, which decides those cases as
 before.
-
-`simple_loops` walks the boundary edges of the kept triangles into closed loops, integer for
-integer the loops of the NumPy sort and Python walk it replaced (a tenth of a patch's time).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["delaunay", "simple_loops"]
+__all__ = ["alpha_boundary_edges", "boundary_band", "delaunay", "grid_means", "simple_loops"]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -329,3 +331,131 @@ def simple_loops(edges: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarr
             prev, cur = cur, (a if a != prev else b)
     starts[n_loops] = n
     return loops, starts[: n_loops + 1].copy(), True
+
+
+@njit(cache=True, nogil=True)
+def grid_means(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean point and integer cell of every occupied cell of the global lattice floor(p / grid_m),
+    cells in (x, y) lexicographic order; each mean sums its points in input order from 0.0 and
+    divides by their count (NumPy's bincount means, bit for bit)."""
+    n = points.shape[0]
+    cells = np.empty((n, 2), np.int64)
+    for i in range(n):
+        cells[i, 0] = np.int64(math.floor(points[i, 0] / grid_m))
+        cells[i, 1] = np.int64(math.floor(points[i, 1] / grid_m))
+    lo_x, lo_y = cells[:, 0].min(), cells[:, 1].min()
+    width = cells[:, 1].max() - lo_y + 1
+    key = (cells[:, 0] - lo_x) * width + (cells[:, 1] - lo_y)
+    order = np.argsort(key, kind="mergesort")
+    slot = np.empty(n, np.int64)
+    n_cells = 0
+    for r in range(n):
+        if r == 0 or key[order[r]] != key[order[r - 1]]:
+            n_cells += 1
+        slot[order[r]] = n_cells - 1
+    sums = np.zeros((n_cells, 2))
+    counts = np.zeros(n_cells, np.int64)
+    out_cells = np.empty((n_cells, 2), np.int64)
+    for i in range(n):
+        s = slot[i]
+        sums[s, 0] += points[i, 0]
+        sums[s, 1] += points[i, 1]
+        counts[s] += 1
+        out_cells[s, 0], out_cells[s, 1] = cells[i, 0], cells[i, 1]
+    for s in range(n_cells):
+        sums[s, 0] /= counts[s]
+        sums[s, 1] /= counts[s]
+    return sums, out_cells
+
+
+@njit(cache=True, nogil=True)
+def _morphology(image: np.ndarray, offsets: np.ndarray, dilate: bool) -> np.ndarray:
+    """Binary dilation (max) or erosion (min) of a 0/1 image over the structuring offsets (K, 2);
+    pixels outside the image count as 0 (OpenCV's constant border of value 0)."""
+    rows, cols = image.shape
+    out = np.empty_like(image)
+    for y in range(rows):
+        for x in range(cols):
+            hit = not dilate
+            for k in range(offsets.shape[0]):
+                yy, xx = y + offsets[k, 0], x + offsets[k, 1]
+                value = image[yy, xx] if 0 <= yy < rows and 0 <= xx < cols else 0
+                if dilate and value != 0:
+                    hit = True
+                    break
+                if not dilate and value == 0:
+                    hit = False
+                    break
+            out[y, x] = 1 if hit else 0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
+    """Mask of the cells (n, 2) at most `band_cells` from an empty cell (Euclidean, in cells).
+
+    Holes narrower than 3 cells are closed first: pixel lattices coarser than the grid leave
+    empty cell rows inside a segment (0.3 m pixels on 0.25 m cells), which would otherwise put
+    every point near an empty cell. A cell is farther than `band_cells` from every empty cell iff
+    the disc of that radius around it is all occupied, so the band is what an erosion by that
+    disc removes. Outside the grid counts as empty, as in scipy's closing; the 2-cell empty margin
+    keeps that from reaching an occupied cell that the margin's own empty cells would not.
+    """
+    lo_x, lo_y = cells[:, 0].min() - 2, cells[:, 1].min() - 2
+    occupied = np.zeros((cells[:, 0].max() - lo_x + 3, cells[:, 1].max() - lo_y + 3), np.uint8)
+    for i in range(cells.shape[0]):
+        occupied[cells[i, 0] - lo_x, cells[i, 1] - lo_y] = 1
+    square = np.empty((9, 2), np.int64)
+    for k in range(9):
+        square[k, 0], square[k, 1] = k // 3 - 1, k % 3 - 1
+    closed = _morphology(_morphology(occupied, square, True), square, False)
+    r = int(math.floor(band_cells))
+    disc = np.empty(((2 * r + 1) ** 2, 2), np.int64)
+    n_disc = 0
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dy * dy + dx * dx <= band_cells * band_cells:
+                disc[n_disc, 0], disc[n_disc, 1] = dy, dx
+                n_disc += 1
+    deep = _morphology(closed, disc[:n_disc], False)
+    band = np.empty(cells.shape[0], np.bool_)
+    for i in range(cells.shape[0]):
+        band[i] = deep[cells[i, 0] - lo_x, cells[i, 1] - lo_y] == 0
+    return band
+
+
+@njit(cache=True, nogil=True)
+def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, radius: float) -> np.ndarray:
+    """The boundary of the alpha complex: edges (E, 2) of the triangles with circumradius < radius
+    (abc < 2 r |twice the area|, without a division, so slivers stay out) that lie in exactly one
+    such triangle, each as (smaller, larger) vertex id, sorted; (0, 2) if no triangle is kept."""
+    n_tri = simplices.shape[0]
+    keep = np.zeros(n_tri, np.bool_)
+    two_r = radius * 2.0
+    for t in range(n_tri):
+        product = 1.0
+        for k in range(3):
+            a, b = simplices[t, k], simplices[t, (k + 1) % 3]
+            dx, dy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
+            side = np.sqrt(dx * dx + dy * dy)
+            product = side if k == 0 else product * side
+        a, b, c = simplices[t, 0], simplices[t, 1], simplices[t, 2]
+        ux, uy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
+        vx, vy = pts[c, 0] - pts[a, 0], pts[c, 1] - pts[a, 1]
+        keep[t] = product < two_r * abs(ux * vy - uy * vx)
+    n_edges = 0
+    ends = np.empty((3 * n_tri, 2), np.int64)
+    for t in range(n_tri):
+        if not keep[t]:
+            continue
+        for k in range(3):
+            other = neighbors[t, k]
+            if other < 0 or not keep[other]:
+                a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+                ends[n_edges, 0], ends[n_edges, 1] = min(a, b), max(a, b)
+                n_edges += 1
+    n_pts = pts.shape[0]
+    key = np.empty(n_edges, np.int64)
+    for e in range(n_edges):
+        key[e] = ends[e, 0] * n_pts + ends[e, 1]
+    return ends[np.argsort(key)]
