@@ -27,6 +27,11 @@ rest (reading patches, mask -> world points, bookkeeping, stacking). --profile F
 cProfile over the single-process build, timed by this process's CPU time (wall time on a shared
 machine charges other processes' load to whatever function was running), writes its stats to
 FILE and prints the functions taking most of it.
+--baseline-src DIR [--rounds N] compares source trees side by side: the orthophoto is made once,
+then this tree and DIR (e.g. a git worktree of an older commit) build it alternately, N times
+each, single process, each build in a fresh interpreter importing its tree; it prints each tree's
+CPU s/patch (median and range), stage times, km^2/min per core and whether the maps are
+identical (sha256 over every map array).
 With --workers N > 1 the same map is then built with N local worker processes, and with
 --engine ray also on a local Ray cluster with N CPUs (N actors); each is checked identical.
 Worker and cluster start-up (fresh interpreters importing torch, about 3 s; Ray's own services)
@@ -47,6 +52,7 @@ import argparse
 import cProfile
 import dataclasses
 import filecmp
+import hashlib
 import json
 import os
 import pstats
@@ -61,6 +67,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _tree_child import config_in_tree, run_in_tree  # scripts/ is on sys.path when a script runs
 
 import meridian_torch.mapping.aerial_map as aerial_map_module
 from meridian_torch.config import load_config
@@ -71,6 +78,7 @@ from meridian_torch.mapping.tiling import tile_image
 from meridian_torch.runtime import peak_rss_mib
 
 REPO = Path(__file__).resolve().parents[1]
+RESULT_TAG = "BENCH_AERIAL_RESULT "
 
 
 class StageTimer:
@@ -198,10 +206,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="measure writing the map file from the part files of maps of these areas (km^2)")
     ap.add_argument("--profile", type=Path, default=None,
                     help="cProfile (CPU time) of the single-process build: stats to this file, top functions printed")
+    ap.add_argument("--baseline-src", type=Path, default=None,
+                    help="also build with the source tree DIR, alternating (single process, fresh interpreters)")
+    ap.add_argument("--rounds", type=int, default=2, help="builds of each tree with --baseline-src")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # one build; prints a JSON line
     ap.add_argument("--assembly-run", choices=["memory", "patchwise"], default=None,
                     help=argparse.SUPPRESS)  # one --assembly measurement, in a fresh process
     ap.add_argument("--assembly-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.baseline_src is not None and (args.profile or args.read_only or args.assembly or args.write_geotiff):
+        ap.error("--baseline-src compares builds: not with --profile, --read-only, --assembly or --write-geotiff")
+    if args.rounds < 1:
+        ap.error(f"--rounds must be >= 1, got {args.rounds}")
     torch.set_num_threads(args.threads)
     if args.assembly_run is not None:
         return _assembly_run(args, load_config(args.config, args.set))
@@ -230,7 +246,51 @@ def main(argv: list[str] | None = None) -> int:
                 return 0
         if args.assembly is not None:
             return _assembly(args, cfg, ortho_path, Path(tmp))
+        if args.baseline_src is not None:
+            return _compare_trees(args, cfg, ortho_path)
         return _bench(args, cfg, overrides, ortho_path, time.perf_counter() - t0)
+
+
+def _map_digest(amap) -> str:
+    """sha256 over every array of the map (primitives by name, then the global descriptors)."""
+    digest = hashlib.sha256()
+    for name, value in [*sorted(vars(amap.primitives).items()), ("global_descriptors", amap.global_descriptors)]:
+        digest.update(name.encode())
+        digest.update(value.contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def _compare_trees(args: argparse.Namespace, cfg, ortho_path: Path) -> int:
+    """--baseline-src: the same orthophoto built by this tree and the baseline, alternately."""
+    trees = [("this tree", REPO), ("baseline", args.baseline_src.resolve())]
+    runs: dict[str, list[dict]] = {label: [] for label, _ in trees}
+    for k in range(args.rounds):
+        for label, source in trees:
+            argv = ["--child", "--geotiff", str(ortho_path), "--mpp", str(args.mpp), "--threads", str(args.threads),
+                    "--workers", "1", "--config", str(config_in_tree(args.config, source)),
+                    *[a for item in args.set for a in ("--set", item)]]
+            if args.max_patches is not None:
+                argv += ["--max-patches", str(args.max_patches)]
+            result = run_in_tree(__file__, argv, source, RESULT_TAG)
+            runs[label].append(result)
+            print(f"round {k + 1} {label:<9} {result['cpu_s'] / result['patches']:.3f} CPU s/patch "
+                  f"({result['patches']} patches, wall {result['wall_s']:.1f} s, load {result['load']:.1f})",
+                  flush=True)
+    n_km2 = _patch_count(1000.0, args.mpp, cfg.aerial_map.patch_size_m, cfg.aerial_map.patch_overlap)
+    print(f"\n{'tree':<10} {'CPU s/patch median':>19} {'range':>14} {'km^2/min/core':>14}  stages, s/patch (median)")
+    medians = {}
+    for label, results in runs.items():
+        per_patch = sorted(r["cpu_s"] / r["patches"] for r in results)
+        medians[label] = float(np.median(per_patch))
+        stage_names = results[0]["stages"]
+        stages = ", ".join(f"{name} {np.median([r['stages'][name] / r['patches'] for r in results]):.3f}"
+                           for name in stage_names)
+        print(f"{label:<10} {medians[label]:19.3f} {per_patch[0]:6.3f}-{per_patch[-1]:.3f} "
+              f"{60.0 / (medians[label] * n_km2):14.3f}  {stages}")
+    digests = {r["digest"] for results in runs.values() for r in results}
+    print(f"baseline / this tree: {medians['baseline'] / medians['this tree']:.2f}x CPU per patch; "
+          f"identical maps: {len(digests) == 1}")
+    return 0
 
 
 def _assembly(args: argparse.Namespace, cfg, ortho_path: Path, tmp: Path) -> int:
@@ -350,6 +410,12 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
     finally:
         aerial_map_module.segments_to_primitives = original
     rss_after = peak_rss_mib()
+    if args.child:
+        stages = dict(timer.seconds)
+        stages["other"] = total - sum(stages.values())
+        print(RESULT_TAG + json.dumps({"patches": len(amap.patches), "cpu_s": cpu, "wall_s": total, "stages": stages,
+                                       "digest": _map_digest(amap), "load": os.getloadavg()[0]}), flush=True)
+        return 0
     if profiler is not None:
         profiler.dump_stats(args.profile)
         print(f"\ncProfile (CPU time, profiler overhead included) written to {args.profile}; by own time:")
