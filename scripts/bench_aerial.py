@@ -403,7 +403,7 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
         with TreePeak() as tree:
             if profiler is not None:
                 profiler.enable()
-            amap = build_aerial_map(ortho, mapper, progress=progress)
+            amap = build_aerial_map(ortho, mapper, progress=None if args.child else progress)
             if profiler is not None:
                 profiler.disable()
         total, cpu = time.perf_counter() - t0, time.process_time() - cpu0

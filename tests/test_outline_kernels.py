@@ -79,9 +79,15 @@ def test_jittered_lattices_are_delaunay_and_cover_their_hull():
 
 def test_degenerate_input_is_reported():
     line = np.stack([np.arange(10.0), 2.0 * np.arange(10.0)], 1)
-    for xy in (np.zeros((2, 2)), np.zeros((5, 2)), line):
+    with_nan = np.random.default_rng(0).uniform(0, 10, (20, 2))
+    with_nan[7, 1] = np.nan
+    for xy in (np.zeros((2, 2)), np.zeros((5, 2)), line, with_nan):
         triangles, neighbours, ok = delaunay(xy)
         assert not ok and triangles.shape == neighbours.shape == (0, 3)
+    blob = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0)), -1).reshape(-1, 2) * 0.3
+    assert alpha_shape_outline(blob, 1.0, 0.25) is not None
+    blob[37, 0] = np.inf
+    assert alpha_shape_outline(blob, 1.0, 0.25) is None
 
 
 def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):

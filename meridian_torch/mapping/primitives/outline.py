@@ -62,10 +62,10 @@ def alpha_shape_outline(
     `max_points` remain; None: no cap), Delaunay-triangulated, triangles with circumradius < 1/alpha kept, and
     the boundary edges of the kept triangles polygonized and unioned. Returns the exterior ring's
     K distinct vertices (K, 2), counter-clockwise, implicitly closed (vertex K-1 connects to
-    vertex 0); None if the points are degenerate or the union is not a single polygon.
+    vertex 0); None if the points are degenerate or not finite, or the union is not a single polygon.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    if len(points) < 3:
+    if len(points) < 3 or not np.isfinite(points).all():  # the compiled grid needs finite cells
         return None
     pts, cells = grid_means(points, grid_m)
     while max_points is not None and len(pts) > max_points:

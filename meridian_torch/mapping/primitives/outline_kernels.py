@@ -21,10 +21,10 @@ while qhull merges such quads within its precision and splits them either way (4
 triangulations of a 300 m world differed in such quads). The two triangles of a cocircular quad
 share its circumcircle, so the alpha test keeps or drops both whichever diagonal is taken, and
 the outlines are the same unless that circumradius equals 1/alpha to rounding: the maps of the
-KITTI 09 world (609 patches) and of SpaceNet's sample GeoTIFF (196) are byte for byte those of
-qhull's triangulation, and a test compares outlines of random segment shapes. When the input is
-degenerate (fewer than 3 distinct points, all collinear) or a point cannot be placed (a
-duplicate), `delaunay` reports failure and the caller asks qhull, which decides those cases as
+KITTI 09 and 00 worlds (609 and 594 patches) and of SpaceNet's sample GeoTIFF (196) are byte for
+byte those of qhull's triangulation, and a test compares outlines of random segment shapes. When the input is
+degenerate (fewer than 3 distinct points, all collinear, not finite) or a point cannot be placed
+(a duplicate), `delaunay` reports failure and the caller asks qhull, which decides those cases as
 before.
 """
 
@@ -133,11 +133,12 @@ def delaunay(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 
     Returns (triangles (T, 3) int64 counter-clockwise, neighbours (T, 3) int64: the triangle
     across the edge opposite each corner, -1 on the hull (scipy's `neighbors`), ok). ok is False,
-    with empty arrays, when the points are degenerate or one could not be placed (see the module).
+    with empty arrays, when the points are degenerate or not finite, or one could not be placed (see
+    the module).
     """
     n = xy.shape[0]
     empty = np.zeros((0, 3), np.int64)
-    if n < 3:
+    if n < 3 or not np.isfinite(xy).all():
         return empty, empty, False
     # Seed: the point nearest the bounding box's centre, its nearest point, and the point making
     # the smallest circumcircle with them.
