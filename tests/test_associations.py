@@ -246,9 +246,11 @@ def mask_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k: int, direction
 
 @pytest.mark.parametrize("direction", ["ground_to_aerial", "union"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_chunk_pairs_equal_mask_definition(direction: str, dtype: torch.dtype) -> None:
-    """The sorted picks give the mask's pairs and cosines exactly: with tied descriptors, unusable
-    primitives on both sides, k above the candidates, and no ground or aerial primitives."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_chunk_pairs_equal_mask_definition(direction: str, dtype: torch.dtype, compiled: bool) -> None:
+    """The sorted picks (compiled, and torch's topk path) give the mask's pairs and cosines exactly:
+    with tied descriptors, unusable primitives on both sides, k above the candidates, and no ground
+    or aerial primitives."""
     gen = torch.Generator().manual_seed(11)
     for n_ground, n_patches, n_aerial, k in ((9, 4, 30, 3), (9, 3, 5, 7), (0, 2, 6, 3), (5, 2, 0, 3), (4, 0, 3, 2)):
         ground_desc = torch.randn(n_ground, 6, generator=gen).to(dtype)
@@ -259,7 +261,7 @@ def test_chunk_pairs_equal_mask_definition(direction: str, dtype: torch.dtype) -
             aerial_desc[:, 4] = ground_desc[2] * 3
         ground_ok = torch.rand(n_ground, generator=gen) > 0.2
         aerial_ok = torch.rand(n_patches, n_aerial, generator=gen) > 0.3
-        got = associations._chunk_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
+        got = associations._chunk_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction, compiled)
         expected = mask_pairs(ground_desc, ground_ok, aerial_desc, aerial_ok, k, direction)
         for x, y in zip(got, expected):
             assert x.dtype == y.dtype and torch.equal(x, y)

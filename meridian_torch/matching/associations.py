@@ -24,6 +24,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
+from meridian_torch.matching.kernels import knn_picks
 from meridian_torch.matching.particle_noise import mix, uniform
 from meridian_torch.types import LineKind, PrimitiveBatch, PrimitiveSet
 
@@ -142,8 +143,11 @@ def _chunk_pairs(
     aerial_ok: torch.Tensor,
     k: int,
     direction: Direction,
+    compiled: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """K-NN pairs of one primitive type for all patches at once.
+    """K-NN pairs of one primitive type for all patches at once. `compiled` (default: on CPU
+    tensors) ranks and picks in one compiled pass (`kernels.knn_picks`), else through torch's topk
+    and sorts (other devices): the same pairs.
 
     Shapes: ground_desc (G, D), ground_ok (G,), aerial_desc (P, A, D), aerial_ok (P, A) ->
     pairs (P, mt, 2) local indices (-1 in padding), valid (P, mt), cosine (P, mt).
@@ -156,7 +160,32 @@ def _chunk_pairs(
     cosine = torch.einsum(
         "gd,pad->pga", F.normalize(ground_desc.double(), dim=-1), F.normalize(aerial_desc.double(), dim=-1)
     )
-    ranked = cosine.float() + tie_break_jitter(n_ground, n_aerial, cosine.device)
+    jitter = tie_break_jitter(n_ground, n_aerial, cosine.device)
+    union = direction == "union"
+    if cosine.device.type == "cpu" if compiled is None else compiled:
+        flat, counts = knn_picks(cosine.numpy(), jitter.numpy(), ground_ok.numpy(), aerial_ok.numpy(),
+                                 min(k, n_aerial), min(k, n_ground) if union else 0)
+        width = int(counts.max()) if n_patches else 0
+        counts, flat = torch.from_numpy(counts), torch.from_numpy(flat[:, :width])
+    else:
+        flat, counts, width = _topk_picks(cosine, jitter, ground_ok, aerial_ok, k, union)
+    valid = torch.arange(width, device=cosine.device)[None, :] < counts[:, None]
+    order = flat.masked_fill(~valid, 0)
+    ground_index, aerial_index = order // max(n_aerial, 1), order % max(n_aerial, 1)
+    pairs = torch.stack([ground_index, aerial_index], dim=-1).masked_fill(~valid[..., None], -1)
+    # Indexed where einsum left it: flattening its (strided) output first copied all P G A values.
+    cos = cosine[torch.arange(n_patches, device=cosine.device)[:, None], ground_index, aerial_index]
+    cos = cos.to(ground_desc.dtype).masked_fill(~valid, 0.0)
+    return pairs, valid, cos
+
+
+def _topk_picks(
+    cosine: torch.Tensor, jitter: torch.Tensor, ground_ok: torch.Tensor, aerial_ok: torch.Tensor, k: int, union: bool
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """`kernels.knn_picks` as torch ops: flat picks (P, W) ascending (padding beyond the counts),
+    counts (P,) and W."""
+    n_patches, n_ground, n_aerial = cosine.shape
+    ranked = cosine.float() + jitter
     ranked.masked_fill_(~ground_ok[None, :, None], float("-inf")).masked_fill_(~aerial_ok[:, None, :], float("-inf"))
     # The picks as flat (ground-major) indices g * A + a; k is clipped to the size of the other
     # side, and picks that land on unusable pairs are dropped below.
@@ -167,7 +196,7 @@ def _chunk_pairs(
         top = ranked.topk(k_aerial, dim=2).indices
         picks.append((top + n_aerial * torch.arange(n_ground, device=device)[:, None]).flatten(1))
     k_ground = min(k, n_ground)
-    union = direction == "union" and k_ground > 0
+    union = union and k_ground > 0
     if union:
         top = ranked.topk(k_ground, dim=1).indices
         picks.append((top * n_aerial + torch.arange(n_aerial, device=device)).flatten(1))
@@ -180,14 +209,7 @@ def _chunk_pairs(
         flat = flat.sort(dim=1).values
     counts = (flat < n_pairs).sum(dim=1)
     width = int(counts.max()) if counts.numel() > 0 else 0
-    valid = torch.arange(width, device=flat.device)[None, :] < counts[:, None]
-    order = flat[:, :width].masked_fill(~valid, 0)
-    ground_index, aerial_index = order // max(n_aerial, 1), order % max(n_aerial, 1)
-    pairs = torch.stack([ground_index, aerial_index], dim=-1).masked_fill(~valid[..., None], -1)
-    # Indexed where einsum left it: flattening its (strided) output first copied all P G A values.
-    cos = cosine[torch.arange(n_patches, device=device)[:, None], ground_index, aerial_index]
-    cos = cos.to(ground_desc.dtype).masked_fill(~valid, 0.0)
-    return pairs, valid, cos
+    return flat[:, :width], counts, width
 
 
 def putative_associations(

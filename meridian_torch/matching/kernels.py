@@ -18,6 +18,9 @@ passes over large intermediates, not arithmetic, were the cost.
   problem (`matching.particle_problem`), bitwise torch's index_add_ passes; `block_rows`,
   `merge_sets`: the sampler's affinity sorted into CSR rows (a coalesced COO's order) and the
   merge of identical sets (`matching.particles`), the same order and integers as torch's sorts.
+- `knn_picks`: the semantic K-NN picks of the putative associations (`matching.associations`), the
+  pairs torch's topk over the ranked similarities picks whenever a row's ranked values are
+  distinct (the tie-break jitter makes them so), without the (P, G, A) ranked tensor.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 - `near_line_closeness`: verification's line score, walking `near_pairs`' grid; bitwise the torch
   expressions. `alignment_scores`: verification's whole alignment score (lines and points) of
@@ -30,7 +33,8 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "alignment_scores", "block_rows", "greedy_clusters", "grown", "initial_particles", "langevin_patches", "merge_sets",
+    "alignment_scores", "block_rows", "greedy_clusters", "grown", "initial_particles", "knn_picks", "langevin_patches",
+    "merge_sets",
     "mix_words", "near_line_closeness", "near_pairs", "particle_words", "renumbered_entries", "round_particles",
     "signed_sigmas", "support_walks", "uniform_words",
 ]
@@ -195,6 +199,71 @@ def _normalise(x: np.ndarray, norm: np.ndarray, column: np.ndarray) -> None:
         v = x[c] / norm[c]
         x[c] = v
         column[c] += v
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ranks_above(x: float, y: float) -> bool:
+    """x before y in a descending topk: larger, NaN above every number (torch's order)."""
+    return x > y or (x != x and y == y)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _insert_top(values: np.ndarray, index: np.ndarray, n: int, k: int, v: float, i: int) -> int:
+    """Insert (v, i) into the descending top list of n <= k entries; returns the new n."""
+    if n == k and not _ranks_above(v, values[n - 1]):
+        return n
+    j = n if n < k else k - 1
+    while j > 0 and _ranks_above(v, values[j - 1]):
+        values[j], index[j] = values[j - 1], index[j - 1]
+        j -= 1
+    values[j], index[j] = v, i
+    return n + 1 if n < k else n
+
+
+@njit(cache=True, nogil=True)
+def knn_picks(
+    cosine: np.ndarray, jitter: np.ndarray, ground_ok: np.ndarray, aerial_ok: np.ndarray, k_aerial: int,
+    k_ground: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat picks g * A + a (ascending, padded with -1) and their counts per patch: for every usable
+    ground primitive g its k_aerial usable aerial primitives a of the highest rank, and (k_ground >
+    0: 'union') for every usable a its k_ground usable g of the highest rank, each pair once. The
+    rank of (p, g, a) is float32(cosine[p, g, a]) + jitter[g, a] in float64, as
+    `associations._chunk_pairs` ranks them; cosine (P, G, A) float64, ground_ok (G,), aerial_ok (P, A)."""
+    n_patches, n_ground, n_aerial = cosine.shape
+    cap = min(n_ground * n_aerial, k_aerial * n_ground + k_ground * n_aerial)
+    picks = np.full((n_patches, cap), -1, np.int64)
+    counts = np.zeros(n_patches, np.int64)
+    selected = np.zeros(n_ground * n_aerial, np.bool_)
+    values = np.empty(max(k_aerial, k_ground, 1))
+    index = np.empty(max(k_aerial, k_ground, 1), np.int64)
+    for p in range(n_patches):
+        for g in range(n_ground if k_aerial > 0 else 0):
+            if not ground_ok[g]:
+                continue
+            n = 0
+            for a in range(n_aerial):
+                if aerial_ok[p, a]:
+                    n = _insert_top(values, index, n, k_aerial, np.float64(np.float32(cosine[p, g, a])) + jitter[g, a], a)
+            for j in range(n):
+                selected[g * n_aerial + index[j]] = True
+        for a in range(n_aerial if k_ground > 0 else 0):
+            if not aerial_ok[p, a]:
+                continue
+            n = 0
+            for g in range(n_ground):
+                if ground_ok[g]:
+                    n = _insert_top(values, index, n, k_ground, np.float64(np.float32(cosine[p, g, a])) + jitter[g, a], g)
+            for j in range(n):
+                selected[index[j] * n_aerial + a] = True
+        c = 0
+        for f in range(n_ground * n_aerial):
+            if selected[f]:
+                picks[p, c] = f
+                c += 1
+                selected[f] = False
+        counts[p] = c
+    return picks, counts
 
 
 @njit(cache=True, nogil=True)
