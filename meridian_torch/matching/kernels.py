@@ -18,9 +18,9 @@ passes over large intermediates, not arithmetic, were the cost.
   problem (`matching.particle_problem`), bitwise torch's index_add_ passes; `block_rows`,
   `merge_sets`: the sampler's affinity sorted into CSR rows (a coalesced COO's order) and the
   merge of identical sets (`matching.particles`), the same order and integers as torch's sorts.
-- `knn_picks`: the semantic K-NN picks of the putative associations (`matching.associations`), the
-  pairs torch's topk over the ranked similarities picks whenever a row's ranked values are
-  distinct (the tie-break jitter makes them so), without the (P, G, A) ranked tensor.
+- `knn_picks`: the semantic K-NN picks of the putative associations (`matching.associations`)
+  without the (P, G, A) ranked tensor: the pairs torch's topk picks, but for exact ties of the
+  ranked values (which the tie-break jitter leaves now and then), given to the lower index.
 - `near_pairs`: verification's point-segment grid (`matching.verification.segments_near_points`).
 - `near_line_closeness`: verification's line score, walking `near_pairs`' grid; bitwise the torch
   expressions. `alignment_scores`: verification's whole alignment score (lines and points) of
