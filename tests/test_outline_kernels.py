@@ -1,6 +1,7 @@
 """The outlines' compiled kernels (`mapping.primitives.outline_kernels`): the Delaunay triangulation
-against qhull and against the definition (no point inside a triangle's circumcircle), the boundary
-loops against a plain walk, and the outlines against qhull's triangulation."""
+against qhull and against the definition (no point inside a triangle's circumcircle), the alpha
+complex's boundary and its loops against their plain definitions. (Outlines from the compiled
+triangulation against qhull's: tests/test_segment_to_primitives.py.)"""
 
 from __future__ import annotations
 
@@ -9,8 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
-from meridian_torch.config.mapping import PrimitiveConfig
-from meridian_torch.mapping.primitives import outline, outline_kernels
+from meridian_torch.mapping.primitives import outline_kernels
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
 from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
 
@@ -88,31 +88,6 @@ def test_degenerate_input_is_reported():
     assert alpha_shape_outline(blob, 1.0, 0.25) is not None
     blob[37, 0] = np.inf
     assert alpha_shape_outline(blob, 1.0, 0.25) is None
-
-
-def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):
-    """Segment-like shapes (lattices with notches and holes, as the outline band test draws them) get
-    the same alpha-shape outline from the compiled triangulation as from qhull's."""
-    cfg = PrimitiveConfig()
-    rng = np.random.default_rng(21)
-    shapes = 0
-    for _ in range(60):
-        spacing, r = rng.choice([0.1, 0.3]), rng.uniform(1.0, 8.0)
-        xs = np.arange(-r, r, spacing)
-        g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
-        inside = (np.abs(g[:, 0]) < r * rng.uniform(0.3, 1.0)) & (np.abs(g[:, 1]) < r * rng.uniform(0.1, 1.0))
-        inside |= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) < rng.uniform(0.5, r)
-        inside &= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) > rng.uniform(0.0, 1.5)
-        pts = g[inside] + rng.uniform(-2000.0, 2000.0, 2)
-        compiled = alpha_shape_outline(pts, cfg.alpha, cfg.alpha_grid_m)
-        with monkeypatch.context() as m:
-            m.setattr(outline, "delaunay", lambda xy: (None, None, False))  # always ask qhull
-            reference = alpha_shape_outline(pts, cfg.alpha, cfg.alpha_grid_m)
-        assert (compiled is None) == (reference is None)
-        if compiled is not None:
-            shapes += 1
-            assert np.array_equal(compiled, reference)
-    assert shapes > 40
 
 
 def _reference_loops(edges: np.ndarray) -> list[list[int]] | None:

@@ -257,19 +257,25 @@ def test_outline_band_equals_full_triangulation():
         assert ring is not None and {tuple(np.round(p, 9)) for p in ring} == {tuple(np.round(p, 9)) for p in expected}
 
 
+def segment_like_points(rng: np.random.Generator, max_radius: float) -> np.ndarray:
+    """Pixel centres (0.1 or 0.3 m lattice) of a segment-like shape: a rotated box and a disc, minus
+    a notch or a hole."""
+    spacing, r = rng.choice([0.1, 0.3]), rng.uniform(1.0, max_radius)
+    xs = np.arange(-r, r, spacing)
+    g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+    q = rotate(g, rng.uniform(0.0, np.pi))
+    inside = (np.abs(q[:, 0]) < r * rng.uniform(0.3, 1.0)) & (np.abs(q[:, 1]) < r * rng.uniform(0.1, 1.0))
+    inside |= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) < rng.uniform(0.5, r)
+    inside &= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) > rng.uniform(0.0, 1.5)  # notches, holes
+    return g[inside]
+
+
 def test_outline_without_band_equals_outline_with_band(monkeypatch):
     """Small point sets skip the boundary band; that gives bit-identical outlines."""
     rng = np.random.default_rng(11)
     shapes = 0
     for _ in range(60):
-        spacing, r = rng.choice([0.1, 0.3]), rng.uniform(1.0, 5.0)
-        xs = np.arange(-r, r, spacing)
-        g = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
-        q = rotate(g, rng.uniform(0.0, np.pi))
-        inside = (np.abs(q[:, 0]) < r * rng.uniform(0.3, 1.0)) & (np.abs(q[:, 1]) < r * rng.uniform(0.1, 1.0))
-        inside |= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) < rng.uniform(0.5, r)
-        inside &= np.linalg.norm(g - rng.uniform(-r, r, 2), axis=1) > rng.uniform(0.0, 1.5)  # notches, holes
-        pts = g[inside] + rng.uniform(-300.0, 300.0, 2)
+        pts = segment_like_points(rng, 5.0) + rng.uniform(-300.0, 300.0, 2)
         outlines = []
         for band_min in (10**9, 0):  # never / always the band
             monkeypatch.setattr(outline, "BAND_MIN_POINTS", band_min)
@@ -278,6 +284,25 @@ def test_outline_without_band_equals_outline_with_band(monkeypatch):
         if outlines[0] is not None:
             shapes += 1
             assert np.array_equal(outlines[0], outlines[1])
+    assert shapes > 40
+
+
+def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):
+    """Segment-like shapes get the same outline from the compiled triangulation (which resolves the
+    jittered lattice's near-cocircular quads by the jitter) as from qhull's (which splits them
+    either way: the two triangles of such a quad share one circumcircle)."""
+    rng = np.random.default_rng(21)
+    shapes = 0
+    for _ in range(60):
+        pts = segment_like_points(rng, 8.0) + rng.uniform(-2000.0, 2000.0, 2)
+        compiled = alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m)
+        with monkeypatch.context() as m:
+            m.setattr(outline, "delaunay", lambda xy: (None, None, False))  # always ask qhull
+            reference = alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m)
+        assert (compiled is None) == (reference is None)
+        if compiled is not None:
+            shapes += 1
+            assert np.array_equal(compiled, reference)
     assert shapes > 40
 
 
