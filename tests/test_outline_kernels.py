@@ -10,9 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
-from meridian_torch.mapping.primitives import outline_kernels
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
-from meridian_torch.mapping.primitives.outline_kernels import delaunay, simple_loops
+from meridian_torch.mapping.primitives.outline_kernels import alpha_boundary_edges, delaunay, simple_loops
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -156,7 +155,7 @@ def test_alpha_boundary_edges_are_the_edges_of_exactly_one_kept_triangle():
         pts = g + rng.uniform(-1e3, 1e3, 2)
         tri = Delaunay(pts + rng.uniform(-1e-7, 1e-7, pts.shape))
         radius = float(rng.choice([0.25, 0.5, 1.0]))
-        edges = outline_kernels.alpha_boundary_edges(pts, tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64), radius)
+        edges = alpha_boundary_edges(pts, tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64), radius)
         count: dict[tuple[int, int], int] = {}
         for t in tri.simplices:
             a, b, c = pts[t]
