@@ -220,6 +220,12 @@ def _insert_top(values: np.ndarray, index: np.ndarray, n: int, k: int, v: float,
     return n + 1 if n < k else n
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _knn_rank(cosine: np.ndarray, jitter: np.ndarray, p: int, g: int, a: int) -> float:
+    """float32(cosine) + jitter in float64, as `associations._chunk_pairs` ranks a pair."""
+    return np.float64(np.float32(cosine[p, g, a])) + jitter[g, a]
+
+
 @njit(cache=True, nogil=True)
 def knn_picks(
     cosine: np.ndarray, jitter: np.ndarray, ground_ok: np.ndarray, aerial_ok: np.ndarray, k_aerial: int,
@@ -227,9 +233,8 @@ def knn_picks(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Flat picks g * A + a (ascending, padded with -1) and their counts per patch: for every usable
     ground primitive g its k_aerial usable aerial primitives a of the highest rank, and (k_ground >
-    0: 'union') for every usable a its k_ground usable g of the highest rank, each pair once. The
-    rank of (p, g, a) is float32(cosine[p, g, a]) + jitter[g, a] in float64, as
-    `associations._chunk_pairs` ranks them; cosine (P, G, A) float64, ground_ok (G,), aerial_ok (P, A)."""
+    0: 'union') for every usable a its k_ground usable g of the highest rank (`_knn_rank`), each
+    pair once; cosine (P, G, A) float64, jitter (G, A), ground_ok (G,), aerial_ok (P, A)."""
     n_patches, n_ground, n_aerial = cosine.shape
     cap = min(n_ground * n_aerial, k_aerial * n_ground + k_ground * n_aerial)
     picks = np.full((n_patches, cap), -1, np.int64)
@@ -244,7 +249,7 @@ def knn_picks(
             n = 0
             for a in range(n_aerial):
                 if aerial_ok[p, a]:
-                    n = _insert_top(values, index, n, k_aerial, np.float64(np.float32(cosine[p, g, a])) + jitter[g, a], a)
+                    n = _insert_top(values, index, n, k_aerial, _knn_rank(cosine, jitter, p, g, a), a)
             for j in range(n):
                 selected[g * n_aerial + index[j]] = True
         for a in range(n_aerial if k_ground > 0 else 0):
@@ -253,7 +258,7 @@ def knn_picks(
             n = 0
             for g in range(n_ground):
                 if ground_ok[g]:
-                    n = _insert_top(values, index, n, k_ground, np.float64(np.float32(cosine[p, g, a])) + jitter[g, a], g)
+                    n = _insert_top(values, index, n, k_ground, _knn_rank(cosine, jitter, p, g, a), g)
             for j in range(n):
                 selected[index[j] * n_aerial + a] = True
         c = 0

@@ -55,14 +55,20 @@ def _in_circle(xy: np.ndarray, a: int, b: int, c: int, d: int) -> bool:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _circumradius2(xy: np.ndarray, a: int, b: int, c: int) -> float:
-    """Squared circumradius of (a, b, c); inf when they are collinear."""
+def _circumcentre_offset(xy: np.ndarray, a: int, b: int, c: int) -> tuple[float, float]:
+    """Circumcentre of (a, b, c) relative to a; (inf, inf) when they are collinear."""
     dx, dy = xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]
     ex, ey = xy[c, 0] - xy[a, 0], xy[c, 1] - xy[a, 1]
     bl, cl, d = dx * dx + dy * dy, ex * ex + ey * ey, dx * ey - dy * ex
     if d == 0.0:
-        return math.inf
-    x, y = (ey * bl - dy * cl) * 0.5 / d, (dx * cl - ex * bl) * 0.5 / d
+        return math.inf, math.inf
+    return (ey * bl - dy * cl) * 0.5 / d, (dx * cl - ex * bl) * 0.5 / d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _circumradius2(xy: np.ndarray, a: int, b: int, c: int) -> float:
+    """Squared circumradius of (a, b, c); inf when they are collinear."""
+    x, y = _circumcentre_offset(xy, a, b, c)
     r2 = x * x + y * y
     return r2 if math.isfinite(r2) else math.inf
 
@@ -167,11 +173,8 @@ def delaunay(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     if _cross(xy, i0, i1, i2) < 0.0:
         i1, i2 = i2, i1
     # Circumcentre of the seed; the points are added by distance from it.
-    dx, dy = xy[i1, 0] - xy[i0, 0], xy[i1, 1] - xy[i0, 1]
-    ex, ey = xy[i2, 0] - xy[i0, 0], xy[i2, 1] - xy[i0, 1]
-    bl, cl, dd = dx * dx + dy * dy, ex * ex + ey * ey, dx * ey - dy * ex
-    cx = xy[i0, 0] + (ey * bl - dy * cl) * 0.5 / dd
-    cy = xy[i0, 1] + (dx * cl - ex * bl) * 0.5 / dd
+    ox, oy = _circumcentre_offset(xy, i0, i1, i2)
+    cx, cy = xy[i0, 0] + ox, xy[i0, 1] + oy
     dist = np.empty(n)
     for i in range(n):
         dist[i] = (xy[i, 0] - cx) ** 2 + (xy[i, 1] - cy) ** 2
@@ -434,12 +437,11 @@ def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.n
     keep = np.zeros(n_tri, np.bool_)
     two_r = radius * 2.0
     for t in range(n_tri):
-        product = 1.0
+        product = 1.0  # (a b) c, as NumPy's prod; 1.0 * a is a
         for k in range(3):
             a, b = simplices[t, k], simplices[t, (k + 1) % 3]
             dx, dy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
-            side = np.sqrt(dx * dx + dy * dy)
-            product = side if k == 0 else product * side
+            product *= np.sqrt(dx * dx + dy * dy)
         a, b, c = simplices[t, 0], simplices[t, 1], simplices[t, 2]
         ux, uy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
         vx, vy = pts[c, 0] - pts[a, 0], pts[c, 1] - pts[a, 1]
