@@ -13,6 +13,7 @@ from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.verification import (
     _chunked_alignment,
     alignment_score,
+    chance_alignment,
     line_pieces,
     piece_closeness,
     reweight_hypotheses,
@@ -141,36 +142,76 @@ def _hypotheses(T: torch.Tensor, probability: torch.Tensor, valid: torch.Tensor)
     )
 
 
-def test_reweighting_ranks_by_mass_times_alignment_and_keeps_the_mass() -> None:
+def _loop_chance(ground: PrimitiveSet, aerial: PrimitiveSet, cfg: VerificationConfig) -> float:
+    """The chance poses written out: the ground box centre at the aerial box centre and at the
+    four diagonal offsets, at every yaw; the mean of the loop alignment."""
+    g = torch.cat([ground.points_xy, ground.line_endpoints.reshape(-1, 2)])
+    a = torch.cat([aerial.points_xy, aerial.line_endpoints.reshape(-1, 2)])
+    g_centre, a_centre = (g.min(0).values + g.max(0).values) / 2, (a.min(0).values + a.max(0).values) / 2
+    scores = []
+    for k in range(cfg.chance_yaws):
+        yaw = torch.tensor(2 * math.pi * k / cfg.chance_yaws, dtype=torch.float64)
+        for dx, dy in ((0, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            R = se2_matrix(yaw, torch.zeros(2, dtype=torch.float64))[:2, :2]
+            target = a_centre + cfg.chance_offset_m * torch.tensor([dx, dy], dtype=torch.float64)
+            scores.append(_loop_alignment(se2_matrix(yaw, target - R @ g_centre), ground, aerial, cfg))
+    return sum(scores) / len(scores)
+
+
+def test_chance_alignment_is_the_mean_over_its_poses_and_per_patch() -> None:
+    gen = torch.Generator().manual_seed(11)
+    cfg = VerificationConfig(chance_yaws=5, line_distance_m=3.0, line_angle_deg=30.0)
+    ground = _random_set(gen, 5, 10)
+    patches = [_random_set(gen, n_p, n_l) for n_p, n_l in ((6, 40), (3, 4), (0, 25))]
+    chance = chance_alignment(ground, stack_primitive_sets(patches), cfg)
+    expected = torch.tensor([_loop_chance(ground, p, cfg) for p in patches], dtype=torch.float64)
+    assert chance.min() > 0
+    torch.testing.assert_close(chance, expected)
+    alone = chance_alignment(ground, stack_primitive_sets(patches[1:2]), cfg)  # no padding, no neighbours
+    torch.testing.assert_close(alone, chance[1:2])
+    # Lines everywhere align more by chance than a few; an empty submap aligns nothing.
+    assert chance[0] > chance[1]
+    empty = _set(torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, 2, dtype=torch.float64))
+    assert chance_alignment(empty, stack_primitive_sets(patches), cfg).tolist() == [0.0, 0.0, 0.0]
+    assert chance_alignment(ground, stack_primitive_sets([empty, empty]), cfg).tolist() == [0.0, 0.0]
+
+
+def test_reweighting_ranks_by_alignment_beyond_chance() -> None:
     cfg = VerificationConfig()
-    ground = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 0.0], [10.0, 0.0]]], dtype=torch.float64))
-    aerial = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 20.0], [10.0, 20.0]]], dtype=torch.float64))
-    # Three poses: the heaviest puts the line nowhere, the lighter two on the aerial line.
-    ty = torch.tensor([[0.0, 20.0, 20.5, 0.0]], dtype=torch.float64)
+    ground = _set(torch.tensor([[5.0, 3.0]], dtype=torch.float64),
+                  torch.tensor([[[0.0, 0.0], [10.0, 0.0]]], dtype=torch.float64))
+    aerial = _set(torch.tensor([[5.0, 23.0]], dtype=torch.float64),
+                  torch.tensor([[[-20.0, 20.0], [30.0, 20.0]], [[0.0, 0.0], [0.0, 10.0]]], dtype=torch.float64))
+    # Four poses: the heaviest lays the submap nowhere, the lightest exactly on the patch.
+    ty = torch.tensor([[0.0, 20.5, 20.0, 0.0]], dtype=torch.float64)
     T = se2_matrix(torch.zeros(1, 4, dtype=torch.float64), torch.stack([torch.zeros_like(ty), ty], -1))
     mass = torch.tensor([[0.5, 0.2, 0.1, 0.0]], dtype=torch.float64)
     valid = torch.tensor([[True, True, True, False]])
-    out = reweight_hypotheses(_hypotheses(T, mass, valid), ground, stack_primitive_sets([aerial]), cfg, 3)
+    batch = stack_primitive_sets([aerial])
+    out = reweight_hypotheses(_hypotheses(T, mass, valid), ground, batch, cfg, 3)
     assert out.t[0, :, 1].tolist() == [20.0, 20.5, 0.0]
-    assert out.probability.sum().item() == pytest.approx(0.8)  # total mass kept
-    # alignment 10 m at 20 m, 10 m x (1 - 0.5^2 / 1.5^2) half a metre off it
-    a0, a1 = 10.0, 10.0 * (1 - 0.5**2 / cfg.line_distance_m**2)
-    assert out.probability[0, 0].item() == pytest.approx(0.8 * 0.2 * a0 / (0.2 * a0 + 0.1 * a1))
-    assert out.probability[0, 2].item() == 0.0
-    assert out.objective[0].tolist() == [1.0, 2.0, 0.0]  # every field follows the new order
+    chance = chance_alignment(ground, batch, cfg).item()
+    whole = 10.0 + cfg.point_weight_m
+    on_point = 1 - 0.5**2 / cfg.point_distance_m**2
+    aligned = [whole, 10.0 * (1 - 0.5**2 / cfg.line_distance_m**2) + cfg.point_weight_m * on_point]
+    assert 0 < chance < aligned[1]
+    expected = [(a - chance) / whole for a in aligned] + [0.0]
+    torch.testing.assert_close(out.probability[0], torch.tensor(expected, dtype=torch.float64))
+    assert out.objective[0].tolist() == [2.0, 1.0, 0.0]  # every field follows the new order
 
 
-def test_reweighting_keeps_masses_when_nothing_aligns_and_checks_the_count() -> None:
+def test_reweighting_keeps_the_mass_order_when_nothing_aligns_and_checks_the_count() -> None:
     cfg = VerificationConfig()
     ground = _set(torch.zeros(0, 2, dtype=torch.float64), torch.tensor([[[0.0, 0.0], [10.0, 0.0]]], dtype=torch.float64))
     aerial = _set(torch.tensor([[500.0, 500.0]], dtype=torch.float64), torch.zeros(0, 2, 2, dtype=torch.float64))
-    T = se2_matrix(torch.zeros(1, 2, dtype=torch.float64), torch.zeros(1, 2, 2, dtype=torch.float64))
-    mass = torch.tensor([[0.3, 0.6]], dtype=torch.float64)
-    h = _hypotheses(T, mass, torch.ones(1, 2, dtype=torch.bool))
-    out = reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 2)
-    assert out.probability[0].tolist() == [0.6, 0.3]
+    T = se2_matrix(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3, 2, dtype=torch.float64))
+    mass = torch.tensor([[0.3, 0.6, 0.1]], dtype=torch.float64)
+    h = _hypotheses(T, mass, torch.ones(1, 3, dtype=torch.bool))
+    out = reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 3)
+    assert out.objective[0].tolist() == [1.0, 0.0, 2.0]  # heaviest first
+    assert out.probability[0].tolist() == [0.0, 0.0, 0.0]
     with pytest.raises(ValueError, match="n_hypotheses"):
-        reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 3)
+        reweight_hypotheses(h, ground, stack_primitive_sets([aerial]), cfg, 4)
 
 
 def test_torch_alignment_does_not_depend_on_the_chunk_size() -> None:

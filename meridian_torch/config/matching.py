@@ -284,12 +284,13 @@ __all__ += ["RegistrationConfig"]
 
 class VerificationConfig(StrictModel):
     """Geometric verification of hypotheses (`matching.verification`, not in the paper): the
-    heaviest clusters of a patch are re-ranked by particle mass x alignment of the posed ground
-    primitives with the aerial ones (measurements: README, Why the defaults are what they are).
+    heaviest clusters of a patch are re-ranked by the alignment of the posed ground primitives
+    with the aerial ones beyond the patch's chance alignment (measurements: README, Why the
+    defaults are what they are).
     """
 
     enabled: bool = Field(
-        default=True, description="rank hypotheses by particle mass x alignment (false: mass only, the paper)"
+        default=True, description="rank hypotheses by alignment beyond chance (false: particle mass only, the paper)"
     )
     candidates: int = Field(
         default=50, ge=1, description="clusters per patch verified (heaviest first); at least hypotheses_per_patch"
@@ -306,6 +307,15 @@ class VerificationConfig(StrictModel):
         default=2.0, gt=0, description="a ground point counts less the farther it lies from an aerial point, nothing beyond this"
     )
     point_weight_m: float = Field(default=5.0, ge=0, description="a point exactly on an aerial point counts as this much line length")
+    chance_yaws: int = Field(
+        default=12, ge=1,
+        description="the alignment a patch gives any pose by chance is the mean over this many evenly spaced yaws "
+        "(x 5 positions); hypotheses are ranked by their alignment beyond it",
+    )
+    chance_offset_m: float = Field(
+        default=10.0, ge=0,
+        description="the chance poses put the submap's centre at the patch's centre and this far from it along the diagonals",
+    )
     chunk_pairs: int = Field(
         default=8_000_000,
         ge=1,

@@ -48,7 +48,8 @@ class Hypotheses:
         T_world_odom: (P, L, 3, 3) maps ground odom x-y (metres) into world x-y (metres).
         theta: (P, L) yaw of T_world_odom, radians in [-pi, pi).
         t: (P, L, 2) translation of T_world_odom, metres.
-        probability: (P, L) cluster weight / n_particles; sums to <= 1 per patch, 0 on padding.
+        probability: (P, L) cluster weight / n_particles (sums to <= 1 per patch; verification
+            replaces it by the share of the submap aligned beyond chance), 0 on padding.
         association_mask: (P, L, m) bool, the representative set's associations (index `pairs`).
         objective: (P, L) J of the representative set (0 on padding).
         valid: (P, L) bool.

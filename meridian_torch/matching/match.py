@@ -2,7 +2,7 @@
 
 associations -> affinity -> inlier sets (Langevin particles, or CLIPPER) -> batched SE(2)
 registration of every set -> greedy clustering into weighted hypotheses T_world_odom ->
-geometric verification (mass x alignment of the whole submap) -> the L best.
+geometric verification (alignment of the whole submap beyond chance) -> the L best.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def match_submap(
 
     Returns:
         `Hypotheses` with (P, L) entries, L = `config.hypotheses_per_patch`, most probable first
-        (particle mass x alignment with `config.verification`, mass alone without).
+        (alignment beyond chance with `config.verification`, particle mass alone without).
     """
     cfg = config or MatchConfig()
     device, dtype = aerial.points_xy.device, aerial.points_xy.dtype

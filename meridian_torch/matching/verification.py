@@ -13,8 +13,12 @@ overhangs; graded, not all-or-nothing, so that of two poses laying the same line
 the closer one wins. Descriptors play no part: this is the check the sparse, descriptor-driven
 associations cannot make.
 
-`reweight_hypotheses` turns the alignment into the ranking: probability = particle mass x
-alignment, rescaled so a patch keeps the total mass it had (probabilities still sum to <= 1).
+`reweight_hypotheses` turns the alignment into the ranking. A pose can lay part of a submap on
+any patch by chance, more on a patch dense with lines, so the score is the alignment beyond
+chance: minus the submap's mean alignment at fixed poses spread over the patch
+(`chance_alignment`), as a fraction of what the submap could align at most. Unlike particle
+mass, which each patch's sampler spreads over its own clusters, this compares across patches
+(README: Why the defaults, `matching.verification`).
 """
 
 from __future__ import annotations
@@ -25,13 +29,17 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import VerificationConfig
+from meridian_torch.geometry.se2 import rotation_matrix, se2_matrix
 from meridian_torch.geometry.segments import squared_segment_distance
 from meridian_torch.geometry.vectors import dot2, squared_norm2
 from meridian_torch.matching.hypotheses import Hypotheses
 from meridian_torch.matching.kernels import alignment_scores, near_line_closeness, near_pairs
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
-__all__ = ["alignment_score", "line_pieces", "piece_closeness", "reweight_hypotheses", "segments_near_points"]
+__all__ = [
+    "alignment_score", "chance_alignment", "line_pieces", "piece_closeness", "reweight_hypotheses",
+    "segments_near_points",
+]
 
 
 def line_pieces(endpoints: Tensor, piece_m: float) -> Tensor:
@@ -192,6 +200,36 @@ def _chunked_alignment(
     return score
 
 
+def chance_alignment(ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig) -> Tensor:
+    """(P,) float64 mean alignment of the submap at fixed poses over each patch: its centre (that of
+    its primitives' bounding box) put at the patch's centre and at the four points
+    `chance_offset_m` from it along the diagonals, at `chance_yaws` evenly spaced yaws. The poses
+    depend on the patch alone, so a patch's score does not depend on the batch."""
+    f64, device = torch.float64, aerial.points_xy.device
+    ground_xy = torch.cat([ground.points_xy, ground.line_endpoints.reshape(-1, 2)]).to(device=device, dtype=f64)
+    aerial_xy = torch.cat([aerial.points_xy.to(f64), aerial.line_endpoints.to(f64).flatten(1, 2)], 1)
+    if not len(ground_xy) or not aerial_xy.shape[:2].numel():
+        return torch.zeros(len(aerial), dtype=f64, device=device)
+    centre_odom = (ground_xy.amin(0) + ground_xy.amax(0)) / 2
+    used = torch.cat([aerial.point_valid, aerial.line_valid.repeat_interleave(2, 1)], 1)[..., None]
+    low = torch.where(used, aerial_xy, math.inf).amin(1)
+    high = torch.where(used, aerial_xy, -math.inf).amax(1)
+    centre_world = torch.where(used.any(1), (low + high) / 2, 0.0)  # (P, 2); empty patches score 0 anyway
+    yaw = torch.arange(config.chance_yaws, dtype=f64, device=device) * (2 * math.pi / config.chance_yaws)
+    diagonals = torch.tensor([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=f64, device=device)
+    t = (centre_world[:, None, None] + config.chance_offset_m * diagonals) - (rotation_matrix(yaw) @ centre_odom)[:, None]
+    T = se2_matrix(yaw[None, :, None].expand(t.shape[:3]), t)  # (P, Y, 5, 3, 3)
+    return _pose_scores(T.flatten(1, 2), ground, aerial, config).mean(1)
+
+
+def _pose_scores(T_world_odom: Tensor, ground: PrimitiveSet, aerial: PrimitiveBatch, config: VerificationConfig) -> Tensor:
+    """`alignment_score` of (P, H) poses: one compiled pass on the CPU (no (pose, primitive,
+    primitive) tensors, so no chunks), else a few patches of similar size at a time."""
+    if T_world_odom.device.type == "cpu":
+        return alignment_score(T_world_odom, ground, aerial, config)
+    return _chunked_alignment(T_world_odom, ground, aerial, config)
+
+
 def reweight_hypotheses(
     hypotheses: Hypotheses,
     ground: PrimitiveSet,
@@ -199,26 +237,28 @@ def reweight_hypotheses(
     config: VerificationConfig,
     n_hypotheses: int,
 ) -> Hypotheses:
-    """Rank (P, H) hypotheses by mass x alignment and keep the best `n_hypotheses` <= H per patch.
+    """Rank (P, H) hypotheses by their alignment beyond chance and keep the best `n_hypotheses` <= H
+    per patch.
 
-    Probabilities become mass x alignment rescaled to the patch's total mass over the H inputs
-    (so they still sum to <= 1); a patch whose hypotheses all align nowhere keeps its masses.
-    On the CPU the alignment of every pose is one compiled pass; elsewhere it is computed a few
-    patches of similar size at a time, about `config.chunk_pairs` (pose, ground primitive, aerial
-    primitive) triples per chunk (memory).
+    probability becomes (alignment - `chance_alignment`) / the submap's whole weight (its line
+    length + point_weight_m x its points), clipped to [0, 1]: the share of the submap the pose
+    lays on the patch beyond chance, comparable across the patches of a call. Ties (0 beyond
+    chance) keep the order of particle mass. On the CPU the alignment of every pose is one
+    compiled pass; elsewhere it is computed a few patches of similar size at a time, about
+    `config.chunk_pairs` (pose, ground primitive, aerial primitive) triples per chunk (memory).
     """
     h = hypotheses
     if n_hypotheses > h.valid.shape[1]:
         raise ValueError(f"n_hypotheses = {n_hypotheses} > the {h.valid.shape[1]} hypotheses given per patch")
     mass = torch.where(h.valid, h.probability, 0.0)
-    if mass.device.type == "cpu":  # compiled: no (pose, primitive, primitive) tensors, so no chunks
-        score = alignment_score(h.T_world_odom, ground, aerial, config)
-    else:
-        score = _chunked_alignment(h.T_world_odom, ground, aerial, config)
-    weight = mass * score
-    total_weight = weight.sum(1, keepdim=True)
-    probability = torch.where(
-        total_weight > 0, weight * mass.sum(1, keepdim=True) / total_weight.clamp_min(1e-30), mass
+    score = _pose_scores(h.T_world_odom, ground, aerial, config)
+    chance = chance_alignment(ground, aerial, config).to(score)
+    whole = (ground.line_endpoints[:, 1] - ground.line_endpoints[:, 0]).norm(dim=-1).sum() + config.point_weight_m * len(
+        ground.points_xy
     )
-    order = torch.sort(torch.where(h.valid, probability, -1.0), dim=1, descending=True, stable=True).indices
+    probability = torch.where(h.valid, ((score - chance[:, None]) / whole.to(score).clamp_min(1e-12)).clamp(0.0, 1.0), 0.0)
+    # Sorted by mass, then stably by the score: equal scores stay heaviest first.
+    by_mass = torch.sort(torch.where(h.valid, mass, -1.0), dim=1, descending=True, stable=True).indices
+    key = torch.where(h.valid, probability, -1.0).gather(1, by_mass)
+    order = by_mass.gather(1, torch.sort(key, dim=1, descending=True, stable=True).indices)
     return _take(h, order[:, :n_hypotheses], probability)
