@@ -2,13 +2,15 @@
 
 A hypothesis T_world_odom of submap k against patch p becomes the candidate
 T_world_base = T_world_odom * T_odom_base(t_k) in SE(2), with its probability and its
-quality q = probability / (best probability of the same (submap, patch) pair), the
-reference's "frequency-ratio". Poses are float64 (3, 3) SE(2) matrices.
+quality q = probability / (best probability of the submap over every patch of its matching
+call), or of the same (submap, patch) pair (the reference's "frequency-ratio"). Poses are
+float64 (3, 3) SE(2) matrices.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -72,18 +74,23 @@ class LoopClosureCandidates:
 
 
 def candidates_from_hypotheses(
-    hypotheses: Hypotheses, submap: GroundSubmap, patch_index: Tensor, *, min_associations: int
+    hypotheses: Hypotheses, submap: GroundSubmap, patch_index: Tensor, *, min_associations: int,
+    quality_scope: Literal["submap", "patch"],
 ) -> LoopClosureCandidates:
     """The valid hypotheses (P, L) of one submap against the patches `patch_index` (P,) as candidates.
 
     Hypotheses with fewer than `min_associations` associations or zero probability are dropped.
-    The quality is computed over the valid hypotheses of each patch before that filter, so the
-    top hypothesis of a pair has q = 1 (reference frequency-ratio).
+    The quality is computed over the valid hypotheses before that filter: relative to the best of
+    all P patches (`quality_scope` "submap": verified probabilities compare across patches, so a
+    decoy patch's best hypothesis no longer counts as much as the true patch's), or of each patch
+    ("patch", the reference's frequency ratio: the top hypothesis of every pair has q = 1).
     """
     n_patches, n_hyp = hypotheses.valid.shape
     valid = hypotheses.valid.cpu()
     prob = hypotheses.probability.detach().cpu().to(torch.float64).masked_fill(~valid, 0.0)
     best = prob.amax(dim=1, keepdim=True)
+    if quality_scope == "submap":
+        best = best.amax(dim=0, keepdim=True) if len(best) else best
     quality = torch.where(best > 0, prob / best.clamp_min(1e-300), torch.zeros_like(prob))
     n_assoc = hypotheses.association_mask.cpu().sum(-1)
     keep = valid & (n_assoc >= min_associations) & (prob > 0)

@@ -54,7 +54,8 @@ class SubmapMatching:
             )
         self.timer.add("matching", start)
         return candidates_from_hypotheses(
-            hyps, submap, patches, min_associations=self.cfg.backend.min_associations
+            hyps, submap, patches, min_associations=self.cfg.backend.min_associations,
+            quality_scope=self.cfg.backend.quality_scope,
         )
 
     def place_recognition_patches(self, submap: GroundSubmap) -> torch.Tensor:

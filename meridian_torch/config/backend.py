@@ -3,6 +3,8 @@ fix gate and the sanity gate."""
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from meridian_torch.config.base import StrictModel
@@ -28,7 +30,13 @@ class BackendConfig(StrictModel):
     )
     min_associations: int = Field(default=3, ge=1, description="hypotheses with fewer associations are no candidates")
     fuse_quality: bool = Field(
-        default=True, description="affinity = cbrt(s * q_i * q_j) with q = probability / best of its (submap, patch)"
+        default=True, description="affinity = cbrt(s * q_i * q_j) with q = probability / best of `quality_scope`"
+    )
+    quality_scope: Literal["submap", "patch"] = Field(
+        default="submap",
+        description="a candidate's quality is its probability relative to the best hypothesis of its submap "
+        "over every patch it was matched against (verified probabilities compare across patches), or of its "
+        "(submap, patch) pair (the reference's frequency ratio)",
     )
     affinity_eps: float = Field(default=1e-4, ge=0, description="affinities at or below this are dropped")
     max_clipper_candidates: int = Field(
