@@ -159,9 +159,10 @@ def test_a_utm_georeferenced_sequence_localizes_end_to_end(tmp_path: Path) -> No
         assert "localized: yes" in result.output
 
     for name in ("trajectory.tum", "trajectory_incremental.tum"):
-        want = np.loadtxt(tmp_path / "run-local" / name)
-        got = np.loadtxt(tmp_path / "run-utm" / name)
-        assert got.shape == want.shape
+        # ndmin: a late online fix may leave a single localized frame in the incremental file.
+        want = np.loadtxt(tmp_path / "run-local" / name, ndmin=2)
+        got = np.loadtxt(tmp_path / "run-utm" / name, ndmin=2)
+        assert got.shape == want.shape and len(want) > 0
         np.testing.assert_allclose(got[:, 0] - UNIX_TIME, want[:, 0], atol=1e-6, rtol=0)
         np.testing.assert_allclose(got[:, 1:3] - UTM_OFFSET, want[:, 1:3], atol=1e-3, rtol=0)
         np.testing.assert_allclose(got[:, 3:], want[:, 3:], atol=1e-6, rtol=0)
