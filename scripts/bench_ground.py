@@ -7,9 +7,11 @@ the current one is tracked) and reports wall time split into stages (frame readi
 segmentation, segment descriptors, observations in the perception thread; tracking, submaps,
 global descriptors in the main thread, and how long it waited for perception), frames per
 second, the process CPU time (user) per frame, the real-time factor (sequence duration / wall
-time) and the peak resident memory. Stage times are the mapper's own `core.timing` stages (wall
-time; the two threads overlap, so they add up to more than the wall time); numbers depend on the
-machine's load, so say how loaded it was when quoting them.
+time) and the peak resident memory. Per-frame numbers count the frames mapped (those due at
+`ground_map.mapping_rate_hz`; `--set ground_map.mapping_rate_hz=null` maps every frame). Stage
+times are the mapper's own `core.timing` stages (wall time; the two threads overlap, so they add
+up to more than the wall time); numbers depend on the machine's load, so say how loaded it was
+when quoting them.
 
 `--stage-cpu` measures CPU instead of wall time per stage: every stage runs in one thread (torch
 and the per-frame thread pools at 1 thread; the perception thread still runs ahead) and the stage
@@ -88,10 +90,12 @@ def run_child(args: argparse.Namespace) -> dict:
         stages["waiting for perception (main thread)"] = waiting
     span = float(reader.frame_times[n - 1] - reader.frame_times[0])
     duration = span * n / max(n - 1, 1)  # n frames at the recorded spacing
+    mapped = len(mapper.frames)  # frames due at ground_map.mapping_rate_hz: per-frame numbers are per mapped frame
     return {
-        "source": str(Path(meridian_torch.__file__).resolve().parents[1]), "sequence": str(seq), "frames": n,
-        "threads": torch.get_num_threads(), "stage_clock": "thread CPU" if args.stage_cpu else "wall",
-        "submaps": len(submaps), "wall_s": wall, "fps": n / wall, "real_time_factor": duration / wall,
+        "source": str(Path(meridian_torch.__file__).resolve().parents[1]), "sequence": str(seq), "frames": mapped,
+        "frames_offered": n, "threads": torch.get_num_threads(),
+        "stage_clock": "thread CPU" if args.stage_cpu else "wall",
+        "submaps": len(submaps), "wall_s": wall, "fps": mapped / wall, "real_time_factor": duration / wall,
         "cpu_user_s": cpu_after.ru_utime - cpu_before.ru_utime, "cpu_system_s": cpu_after.ru_stime - cpu_before.ru_stime,
         "peak_rss_mb": peak_rss_mib(), "stages_s": stages, "load_average_before": load,
         "load_average_after": list(os.getloadavg()),
@@ -100,7 +104,8 @@ def run_child(args: argparse.Namespace) -> dict:
 
 def report(result: dict) -> str:
     n = result["frames"]
-    lines = [f"{result['source']}: {n} frames, {result['submaps']} submaps in {result['wall_s']:.1f} s: "
+    offered = result.get("frames_offered", n)
+    lines = [f"{result['source']}: {offered} frames ({n} mapped), {result['submaps']} submaps in {result['wall_s']:.1f} s: "
              f"{result['fps']:.2f} frames/s, process CPU {result['cpu_user_s']:.1f} s user "
              f"({1000 * result['cpu_user_s'] / n:.0f} ms/frame) + {result['cpu_system_s']:.1f} s system, "
              f"real-time factor {result['real_time_factor']:.2f}, peak RSS {result['peak_rss_mb']:.0f} MB, "

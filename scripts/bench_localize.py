@@ -96,6 +96,7 @@ class ReplayedSequence:
         self.frame_times = t[0] + np.concatenate([[0.0], np.cumsum(np.concatenate(steps))])
         self.camera = reader.camera
         self._odom = reader.T_odom_base[self.order]
+        self.T_odom_base = self._odom
         self.odometry = Trajectory(self.frame_times, self._odom)
         gt = reader.groundtruth
         self.groundtruth = None if gt is None else Trajectory(self.frame_times, gt.interpolate(t)[self.order])
@@ -171,6 +172,7 @@ def run_child(args: argparse.Namespace) -> dict:
 
     def on_stage(name: str) -> None:
         online_end.append(time.perf_counter())
+        source.mark(len(source))  # a last pass whose final frames were not mapped (never read)
 
     def go():
         return localize_sequence(source, aerial_map, cfg, runtime, on_stage=on_stage)
@@ -204,6 +206,7 @@ def run_child(args: argparse.Namespace) -> dict:
     return {
         "source": str(Path(sys.modules["meridian_torch"].__file__).parent.parent),
         "frames": n,
+        "frames_mapped": getattr(run, "frames_mapped", n),  # older trees map every frame
         "submaps": len(run.submaps),
         "duration_s": duration,
         "wall_s": wall,
@@ -239,7 +242,8 @@ def _pass_rows(source: _PassMarks, started: float) -> list[dict]:
 
 class _PassMarks:
     """Wraps a source and notes the wall clock and resident memory when each pass's last frame is
-    read (frames are read one batch ahead of the mapper, so a mark leads its pass by a batch)."""
+    read (frames are read one batch ahead of the mapper, so a mark leads its pass by a batch; when
+    the mapper skips a pass's last frames, at the next frame read, or at the end of the drive)."""
 
     def __init__(self, source, pass_ends) -> None:
         from meridian_torch.runtime import current_rss_mib
@@ -248,7 +252,7 @@ class _PassMarks:
         self.pass_ends = [int(e) for e in pass_ends if e <= len(source)] or [len(source)]
         if self.pass_ends[-1] < len(source):
             self.pass_ends.append(len(source))
-        self.frame_times = source.frame_times
+        self.frame_times, self.T_odom_base = source.frame_times, source.T_odom_base
         self.camera, self.odometry, self.groundtruth = source.camera, source.odometry, source.groundtruth
         self.marks: list[tuple[int, float, float]] = []  # (frames read, perf_counter, RSS MiB)
 
@@ -257,9 +261,14 @@ class _PassMarks:
 
     def __getitem__(self, k: int):
         frame = self.source[k]
-        if k + 1 in self.pass_ends and all(m[0] != k + 1 for m in self.marks):
-            self.marks.append((k + 1, time.perf_counter(), self._rss()))
+        self.mark(k + 1)
         return frame
+
+    def mark(self, frames: int) -> None:
+        """Mark every pass that ends within the first `frames` frames and is not marked yet."""
+        for end in self.pass_ends:
+            if end <= frames and all(m[0] != end for m in self.marks):
+                self.marks.append((end, time.perf_counter(), self._rss()))
 
     def ortho(self):
         return self.source.ortho()
@@ -273,7 +282,7 @@ class _FirstFrames:
 
     def __init__(self, source, n: int) -> None:
         self.source, self.n = source, min(n, len(source))
-        self.frame_times = source.frame_times[: self.n]
+        self.frame_times, self.T_odom_base = source.frame_times[: self.n], source.T_odom_base[: self.n]
         self.camera, self.odometry, self.groundtruth = source.camera, source.odometry, source.groundtruth
 
     def __len__(self) -> int:
@@ -375,7 +384,7 @@ def report(results: list[tuple[str, dict]]) -> str:
     sep = "|---|" + "---|" * len(results)
     lines = [head, sep]
     rows = [
-        ("frames / submaps", lambda r: f"{r['frames']} / {r['submaps']}"),
+        ("frames / mapped / submaps", lambda r: f"{r['frames']} / {r.get('frames_mapped', r['frames'])} / {r['submaps']}"),
         ("sequence duration", lambda r: fmt(r["duration_s"], ".1f", " s")),
         ("wall time (online + final pass)", lambda r: f"{r['online_s']:.1f} + {r['wall_s'] - r['online_s']:.1f} s"),
         ("frames/s (total)", lambda r: fmt(r["frames_per_s"], ".1f")),

@@ -7,13 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meridian_torch.config import CONFIG_DIR, load_config
 from meridian_torch.evaluation.primitive_metrics import line_metrics, world_ground_truth
 from meridian_torch.geometry.se3 import se3_inverse
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.io.submap_file import SubmapFileError, load_ground_submaps, save_ground_submaps
-from meridian_torch.mapping.ground_map import GroundMapper, map_ground
+from meridian_torch.mapping.ground_map import GroundMapper, frames_to_map, map_ground
 from meridian_torch.runtime import resolve_runtime
 from meridian_torch.sim.ground_truth import load_ground_truth
 from meridian_torch.sim.simulate import simulate_sequence
@@ -261,3 +263,72 @@ def test_fast_tracking_gives_the_plain_trackers_submaps(tiny: Path, submaps) -> 
             assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
             assert torch.equal(getattr(a.primitives, name), getattr(c.primitives, name)), name
         assert torch.equal(a.segment_ids, b.segment_ids)
+
+
+def _first_of_each_interval(times: list[float], rate_hz: float) -> list[bool]:
+    """The rule spelled out: walk the clock's intervals from the first frame and map a frame when
+    it is the first to land in its interval."""
+    origin, seen, out = times[0], set(), []
+    for t in times:
+        k = 0
+        while origin + (k + 1) / rate_hz <= t + 1e-9:
+            k += 1
+        out.append(k not in seen)
+        seen.add(k)
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    gaps=st.lists(st.floats(0.01, 0.7), min_size=1, max_size=60),
+    rate_hz=st.floats(0.5, 30.0),
+    cut=st.integers(0, 60),
+)
+def test_the_mapper_takes_the_first_frame_of_each_interval_of_its_clock(tiny: Path, gaps, rate_hz, cut) -> None:
+    times = np.cumsum([3.0, *gaps])  # any start time: the clock starts at the first frame
+    mapper = GroundMapper.from_config(
+        load_config(CONFIG_DIR / "tiny.yaml", [f"ground_map.mapping_rate_hz={rate_hz!r}"]),
+        SequenceReader(tiny).camera, resolve_runtime(CFG.runtime),
+    )
+    cut = min(cut, len(times))  # offered in two calls: the clock carries over
+    due = np.concatenate([mapper.due(times[:cut]), mapper.due(times[cut:])])
+    assert due.tolist() == _first_of_each_interval(times.tolist(), rate_hz)
+    assert due[0] and due.sum() <= np.floor((times[-1] - times[0]) * rate_hz + 1e-6) + 1
+    assert frames_to_map(times, times[0], None, None).all()
+    with pytest.raises(ValueError, match="strictly increasing"):
+        mapper.due(times[-1:])
+
+
+def test_frames_above_the_mapping_rate_are_neither_decoded_nor_mapped(tiny: Path) -> None:
+    """At half the tiny sequence's frame rate, map_ground reads and maps only the frames due, and its
+    submaps are bitwise those of a mapper that maps every frame fed only those."""
+
+    class Counting(SequenceReader):
+        def __init__(self, path: Path) -> None:
+            super().__init__(path)
+            self.read: list[int] = []
+
+        def __getitem__(self, index: int):
+            self.read.append(index)
+            return super().__getitem__(index)
+
+    reader = Counting(tiny)
+    rate = 0.5 / float(np.median(np.diff(reader.frame_times)))
+    half = load_config(CONFIG_DIR / "tiny.yaml", [f"ground_map.mapping_rate_hz={rate!r}"])
+    due = np.flatnonzero(frames_to_map(reader.frame_times, reader.frame_times[0], None, rate))
+    assert len(reader) * 0.4 < len(due) < len(reader) * 0.6
+    skipping = map_ground(reader, half, resolve_runtime(half.runtime))
+    assert sorted(reader.read) == due.tolist()
+
+    every = load_config(CONFIG_DIR / "tiny.yaml", ["ground_map.mapping_rate_hz=null"])
+    mapper = GroundMapper.from_config(every, reader.camera, resolve_runtime(every.runtime))
+    plain = []
+    for start in range(0, len(due), every.ground_map.batch_size):
+        plain += mapper.add_frames([reader[int(i)] for i in due[start : start + every.ground_map.batch_size]])
+    plain += mapper.finish()
+    assert len(plain) == len(skipping) >= 1
+    for a, b in zip(plain, skipping):
+        assert a.time == b.time and np.array_equal(a.T_odom_base, b.T_odom_base)
+        for name in a.primitives.__dataclass_fields__:
+            assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
+

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from meridian_torch.config import CONFIG_DIR, load_config
 from meridian_torch.io.ortho import read_orthophoto
@@ -101,3 +102,25 @@ def test_submaps_come_denser_from_the_fix_on(tmp_path: Path) -> None:
     # before the fix the default gates hold; after it, gaps those gates forbid, none below the new one
     assert before.min() >= cfg.ground_map.submap_min_path_m - 1e-9
     assert after.min() >= 12.0 - 1e-9 and (after < cfg.ground_map.submap_min_path_m).any()
+
+
+@pytest.mark.slow
+def test_frames_above_the_mapping_rate_carry_odometry_in_both_paths(world) -> None:
+    """At 3/4 of the frame rate, frame by frame and the folder pipeline map the same frames into the
+    same submaps, and both trajectories still have a pose for every frame."""
+    reader, aerial_map = world
+    rate = 0.75 / float(np.median(np.diff(reader.frame_times)))
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", [*CFG_OVERRIDES, f"ground_map.mapping_rate_hz={rate!r}"])
+    folder = localize_sequence(reader, aerial_map, cfg, resolve_runtime(cfg.runtime))
+    live = LiveLocalizer(aerial_map, cfg, reader.camera, resolve_runtime(cfg.runtime))
+    estimates = [live.add_frame(f.rgb, f.depth, f.T_odom_base, f.timestamp) for f in reader]
+    result = live.finish()
+    assert folder.frames_mapped == len(live.mapper.frames) == pytest.approx(0.75 * len(reader), abs=1)
+    assert [e.time for e in estimates] == reader.frame_times.tolist()
+    assert len(folder.result.T_world_base) == len(result.T_world_base) == len(reader)
+    np.testing.assert_array_equal(result.T_world_base_incremental, folder.result.T_world_base_incremental)
+    assert len(live.submaps) == len(folder.submaps) >= 2
+    for a, b in zip(live.submaps, folder.submaps):
+        assert a.time == b.time
+        for name in a.primitives.__dataclass_fields__:
+            assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name

@@ -249,6 +249,12 @@ class GroundMapConfig(StrictModel):
         default=0.1, ge=0, le=1, description="lines need this fraction of samples away from every occluded point"
     )
     artifact_dist_m: float = Field(default=0.5, gt=0, description="distance used by both artefact tests")
+    mapping_rate_hz: float | None = Field(
+        default=6.0,
+        gt=0,
+        description="[paper] frames are mapped at this rate at most: the first frame of each 1/rate interval of a "
+        "clock started at the first frame; the others only carry odometry to the localizer (None: every frame)",
+    )
     frame_descriptor_dist_m: float = Field(
         default=5.0, gt=0, description="travel between frame global descriptors (submap descriptor stack)"
     )

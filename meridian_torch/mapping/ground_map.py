@@ -5,7 +5,12 @@ together) returns the submaps completed by those frames; `finish` flushes the la
 `map_ground` runs it over a whole sequence. See ground_observations / ground_tracking /
 ground_submaps for the stages and the reference rules they follow.
 
-Per frame: segment, describe the masks, build the observations; a global (place-recognition)
+Frames come faster than the mapper needs them on many robots (cameras at 10-30 Hz); like the
+paper, which maps at a fixed 6 Hz, only the first frame of each 1 / `mapping_rate_hz` interval of a
+clock started at the first frame is mapped (`frames_to_map`); the others still carry odometry to
+the localizer.
+
+Per frame mapped: segment, describe the masks, build the observations; a global (place-recognition)
 descriptor is computed only when the camera moved `frame_descriptor_dist_m` since the last one;
 update the tracker; check the submap trigger. A submap's centre is the frame nearest in time to
 the median of its NEW segments' (first_seen + last_seen) / 2 (non-decreasing; the reference
@@ -48,7 +53,24 @@ from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescribe
 from meridian_torch.runtime import Runtime
 from meridian_torch.types import GroundSubmap
 
-__all__ = ["GroundMapper", "PerceivedFrames", "ground_map_config_dict", "map_ground", "perceived_batches"]
+__all__ = [
+    "GroundMapper", "PerceivedFrames", "frames_to_map", "ground_map_config_dict", "map_ground", "perceived_batches"
+]
+
+
+def frames_to_map(times: np.ndarray, origin: float, previous: float | None, rate_hz: float | None) -> np.ndarray:
+    """(N,) bool: which frames at `times` (increasing seconds) to map at `rate_hz` at most - the first
+    of each interval [origin + k / rate_hz, origin + (k + 1) / rate_hz). `previous` is the time of
+    the frame offered before `times[0]` (None: it is the first). Every frame when `rate_hz` is None.
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    if rate_hz is None:
+        return np.ones(len(times), dtype=bool)
+    # a frame exactly on a tick (e.g. 12 Hz frames, a 6 Hz clock) opens it despite rounding
+    tick = np.floor((np.concatenate([[origin if previous is None else previous], times]) - origin) * rate_hz + 1e-6)
+    if previous is None:
+        tick[0] = -1
+    return tick[1:] > tick[:-1]
 
 
 @dataclass(frozen=True)
@@ -105,6 +127,8 @@ class GroundMapper:
         self.geometries: list[SubmapGeometry] | None = [] if keep_geometries else None
         self._n_submaps = 0
         self._last_descriptor_xyz: np.ndarray | None = None
+        self._clock_origin: float | None = None  # mapping_rate_hz's clock: the first frame's time
+        self._last_offered_time: float | None = None
         self._last_submap_time = -np.inf
         self._T_base_camera = np.asarray(camera.T_base_camera, dtype=np.float64)
         self._finished = False
@@ -127,10 +151,30 @@ class GroundMapper:
         return self.add_frames([frame])
 
     def add_frames(self, frames: Sequence[Frame]) -> list[GroundSubmap]:
-        """Process frames in time order, segmenting them as one batch; returns completed submaps."""
-        if not frames:
+        """Process frames in time order, segmenting those due (`due`) as one batch; returns
+        completed submaps."""
+        due = self.due([f.timestamp for f in frames])
+        mapped = [f for f, d in zip(frames, due) if d]
+        if not mapped:
             return []
-        return self.integrate(self.perceive(frames))
+        return self.integrate(self.perceive(mapped))
+
+    def due(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the next frames offered (their times, after every earlier call's) to
+        map at `mapping_rate_hz` (`frames_to_map`). Each frame is offered once, in time order."""
+        times = np.asarray(times, dtype=np.float64).reshape(-1)
+        if not len(times):
+            return np.zeros(0, dtype=bool)
+        if self._last_offered_time is not None and times[0] <= self._last_offered_time:
+            raise ValueError(f"frame times must be strictly increasing: {times[0]} is not after the previous "
+                             f"frame's {self._last_offered_time}")
+        if np.any(np.diff(times) <= 0):
+            raise ValueError(f"frame times must be strictly increasing, got {times.tolist()}")
+        if self._clock_origin is None:
+            self._clock_origin = float(times[0])
+        due = frames_to_map(times, self._clock_origin, self._last_offered_time, self.cfg.mapping_rate_hz)
+        self._last_offered_time = float(times[-1])
+        return due
 
     def perceive(self, frames: Sequence[Frame]) -> PerceivedFrames:
         """The stateless part of `add_frames`: segmentation, segment descriptors and 3D observations
@@ -211,12 +255,13 @@ class GroundMapper:
         submaps: list[GroundSubmap] = []
         if progress is not None:
             progress(0, n)
-        done = 0
+        times = reader.frame_times[:n]
         for batch in perceived_batches(self, reader, n):
             submaps += self.integrate(batch)
-            done += len(batch)
-            if progress is not None:
-                progress(done, n)
+            if progress is not None:  # frames offered so far, mapped or not
+                progress(int(np.searchsorted(times, batch.times[-1])) + 1, n)
+        if progress is not None:
+            progress(n, n)
         return submaps + self.finish()
 
     # ---------------------------------------------------------------------------- submaps
@@ -275,17 +320,18 @@ class GroundMapper:
 
 
 def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Iterator[PerceivedFrames]:
-    """The first `n_frames` frames of `reader` in batches of `ground_map.batch_size`, in a
-    three-stage pipeline: a reader thread decodes batch k + 2 while a perception thread perceives
-    batch k + 1 and the caller integrates batch k (the tracker and submaps are serial; the
-    threads keep the other core busy meanwhile, and image decoding off the perception thread's
-    critical path). The batches and their contents are those of the plain loop; both threads
-    record their stages into the caller's stage table."""
-    starts = list(range(0, n_frames, mapper.cfg.batch_size))
+    """The frames due (`GroundMapper.due`) among the first `n_frames` of `reader`, in batches of
+    `ground_map.batch_size`, in a three-stage pipeline: a reader thread decodes batch k + 2 while
+    a perception thread perceives batch k + 1 and the caller integrates batch k (the tracker and
+    submaps are serial; the threads keep the other core busy meanwhile, and image decoding off the
+    perception thread's critical path). The batches and their contents are those of a plain loop
+    over the frames due; both threads record their stages into the caller's stage table."""
+    mapped = np.flatnonzero(mapper.due(reader.frame_times[:n_frames]))  # the others are never decoded
+    starts = list(range(0, len(mapped), mapper.cfg.batch_size))
 
     def read(start: int) -> list[Frame]:
         with stage("read frames"):
-            return [reader[i] for i in range(start, min(start + mapper.cfg.batch_size, n_frames))]
+            return [reader[int(i)] for i in mapped[start : start + mapper.cfg.batch_size]]
 
     with ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
             ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as perceive_pool:

@@ -8,8 +8,9 @@ from a ROS callback), the current `T_world_base` with its covariance out.
             publish(estimate.T_world_base, estimate.covariance)
     result = live.finish()                               # the final offline pass (optional)
 
-Frames go through the ground mapper; each submap it completes is localized at once (stamped with
-the time of the frame that completed it). The perception models are those of the config
+Frames go through the ground mapper (those due at `ground_map.mapping_rate_hz`; the others only
+carry odometry); each submap it completes is localized at once (stamped with the time of the
+frame that completed it). The perception models are those of the config
 (`perception.ground_engine: onnx` runs them in onnxruntime). A sequence folder fed through this
 class frame by frame gives the same submaps, online estimates and final trajectory as
 `localize_sequence` with `ground_map.batch_size: 1` (a test checks it); larger batches segment
@@ -91,27 +92,51 @@ class LiveLocalizer:
         return self.add_frames([frame])
 
     def add_frames(self, frames: Sequence[Frame]) -> LiveEstimate:
-        """Several frames at once (segmented as one batch); the estimate is that after the last."""
+        """Several frames at once (those due segmented as one batch); the estimate is that after
+        the last."""
         if not frames:
             raise ValueError("add_frames needs at least one frame")
         for frame in frames:
             self._check(frame)
+        due = self.mapper.due([f.timestamp for f in frames])
+        skipped = [f for f, d in zip(frames, due) if not d]
+        skipped_times = np.array([f.timestamp for f in skipped], dtype=np.float64)
+        skipped_poses = np.array([f.T_odom_base for f in skipped], dtype=np.float64).reshape(-1, 4, 4)
+        if not due.any():
+            return self.add_odometry(skipped_times, skipped_poses)
         started = time.perf_counter()
         with stage("ground mapping"):
-            batch = self.mapper.perceive(frames)
+            batch = self.mapper.perceive([f for f, d in zip(frames, due) if d])
         self.mapping_seconds += time.perf_counter() - started
-        return self.add_perceived(batch)
+        return self.add_perceived(batch, skipped=(skipped_times, skipped_poses))
 
-    def add_perceived(self, batch: PerceivedFrames) -> LiveEstimate:
+    def add_perceived(
+        self, batch: PerceivedFrames, *, skipped: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> LiveEstimate:
         """Frames the mapper already perceived (`GroundMapper.perceive`, e.g. one batch ahead in
-        another thread, `perceived_batches`); the estimate is that after the last."""
-        self.localizer.add_frames(batch.times, batch.T_odom_base)
+        another thread, `perceived_batches`); the estimate is that after the last. `skipped`:
+        (times (K,), T_odom_base (K, 4, 4)) of frames since the previous call that were not due
+        (`GroundMapper.due`); they reach the localizer in time order with the batch's."""
+        times, T_odom_base = batch.times, batch.T_odom_base
+        if skipped is not None and len(skipped[0]):
+            times = np.concatenate([skipped[0], times])
+            T_odom_base = np.concatenate([skipped[1], T_odom_base])
+            order = np.argsort(times, kind="stable")
+            times, T_odom_base = times[order], T_odom_base[order]
+        self.localizer.add_frames(times, T_odom_base)
         started = time.perf_counter()
         with stage("ground mapping"):
             new = self.mapper.integrate(batch)
         self.mapping_seconds += time.perf_counter() - started
-        self._n_frames += len(batch)
-        return self._localize(new, float(batch.times[-1]))
+        self._n_frames += len(times)
+        return self._localize(new, float(times[-1]))
+
+    def add_odometry(self, frame_times: np.ndarray, T_odom_base: np.ndarray) -> LiveEstimate:
+        """Frames that are not mapped (not due, `GroundMapper.due`): their (K,) times and (K, 4, 4)
+        odometry poses only, in time order; the estimate is that after the last."""
+        self.localizer.add_frames(frame_times, T_odom_base)
+        self._n_frames += len(frame_times)
+        return self._localize([], float(self.localizer.frame_times[-1]))
 
     def finish(self) -> LocalizationResult:
         """End of the drive: the last submap, then the final offline pass over every frame (the

@@ -1,8 +1,9 @@
 """The online run over one sequence folder: its frames fed through `LiveLocalizer` as a robot would.
 
-Frames go to the ground mapper in the order they were recorded; every submap it completes goes
-to the localizer at once, stamped with the time of the frame that completed it, so the incremental
-trajectory only uses what was known online. `finalize` then runs the offline pass for the final
+Frames go to the ground mapper in the order they were recorded (those due at
+`ground_map.mapping_rate_hz`; the others only carry odometry to the localizer); every submap it
+completes goes to the localizer at once, stamped with the time of the frame that completed it, so
+the incremental trajectory only uses what was known online. `finalize` then runs the offline pass for the final
 trajectory. Stage timings and the real-time factor make the run's cost visible.
 """
 
@@ -11,6 +12,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from meridian_torch.backend.results import LocalizationResult, LocalizerEvent, Matcher
 from meridian_torch.config import MeridianConfig
@@ -33,6 +36,7 @@ class SequenceRun:
     seconds: dict[str, float] = field(default_factory=dict)  # per stage and "total"
     sequence_duration_s: float = 0.0
     peak_memory_mib: float = 0.0
+    frames_mapped: int = 0  # frames due at ground_map.mapping_rate_hz (the others carried odometry only)
 
     @property
     def real_time_factor(self) -> float:
@@ -63,7 +67,8 @@ def localize_sequence(
     started = time.perf_counter()
     live = LiveLocalizer(aerial_map, cfg, reader.camera, runtime, matcher=matcher)
     n = len(reader)
-    done, waiting_s = 0, 0.0
+    frame_times, T_odom_base = reader.frame_times[:n], reader.T_odom_base[:n]
+    done, waiting_s = 0, 0.0  # frames given to the localizer, mapped or not
     batches = perceived_batches(live.mapper, reader, n)  # the next batch is read and perceived meanwhile
     while True:
         t0 = time.perf_counter()
@@ -72,13 +77,20 @@ def localize_sequence(
         waiting_s += time.perf_counter() - t0
         if perceived is None:
             break
-        estimate = live.add_perceived(perceived)
+        # frames not due (ground_map.mapping_rate_hz) up to this batch's last carry odometry only
+        end = int(np.searchsorted(frame_times, perceived.times[-1])) + 1
+        skipped = done + np.flatnonzero(~np.isin(frame_times[done:end], perceived.times))
+        estimate = live.add_perceived(perceived, skipped=(frame_times[skipped], T_odom_base[skipped]))
         if on_submap is not None:
             for event in estimate.events:
                 on_submap(live.submaps[event.submap_index], event)
-        done += len(perceived)
+        done = end
         if on_frames is not None:
             on_frames(done, n)
+    if done < n:
+        live.add_odometry(frame_times[done:], T_odom_base[done:])
+        if on_frames is not None:
+            on_frames(n, n)
     if on_stage is not None:
         on_stage("final optimization")
     result = live.finish()
@@ -92,4 +104,5 @@ def localize_sequence(
         seconds=seconds,
         sequence_duration_s=float(times[-1] - times[0]),
         peak_memory_mib=peak_rss_mib(),
+        frames_mapped=len(live.mapper.frames),
     )
