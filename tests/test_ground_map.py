@@ -332,3 +332,18 @@ def test_frames_above_the_mapping_rate_are_neither_decoded_nor_mapped(tiny: Path
         for name in a.primitives.__dataclass_fields__:
             assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name
 
+
+def test_a_mapper_without_frame_descriptors_makes_the_same_submaps(tiny: Path, submaps) -> None:
+    """Frame descriptors only feed global place recognition; leaving them out changes nothing else."""
+    from meridian_torch.core.timing import record_stages
+
+    reader = SequenceReader(tiny)
+    mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime), frame_descriptors=False)
+    with record_stages() as times:
+        bare = mapper.map_sequence(reader)
+    assert "global descriptors" not in times.seconds
+    assert len(bare) == len(submaps) >= 2
+    for a, b in zip(bare, submaps):
+        assert a.time == b.time and a.frame_descriptors.shape == (0, b.frame_descriptors.shape[1])
+        for name in a.primitives.__dataclass_fields__:
+            assert torch.equal(getattr(a.primitives, name), getattr(b.primitives, name)), name

@@ -104,6 +104,14 @@ def test_submaps_come_denser_from_the_fix_on(tmp_path: Path) -> None:
     assert after.min() >= 12.0 - 1e-9 and (after < cfg.ground_map.submap_min_path_m).any()
 
 
+def test_frame_descriptors_are_computed_only_for_global_place_recognition(world) -> None:
+    reader, aerial_map = world
+    for mode, wanted in (("auto", False), ("exhaustive", False), ("global", True)):
+        cfg = load_config(CONFIG_DIR / "tiny.yaml", [*CFG_OVERRIDES, f"matching.place_recognition.mode={mode}"])
+        live = LiveLocalizer(aerial_map, cfg, reader.camera, resolve_runtime(cfg.runtime))
+        assert live.mapper.frame_descriptors is wanted, mode
+
+
 @pytest.mark.slow
 def test_frames_above_the_mapping_rate_carry_odometry_in_both_paths(world) -> None:
     """At 3/4 of the frame rate, frame by frame and the folder pipeline map the same frames into the

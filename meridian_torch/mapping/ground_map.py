@@ -98,7 +98,11 @@ class _FrameRecord:
 
 
 class GroundMapper:
-    """Online ground mapping of one RGB-D sequence (frames must come in time order)."""
+    """Online ground mapping of one RGB-D sequence (frames must come in time order).
+
+    `frame_descriptors=False` leaves the frames' global descriptors out: submaps then carry none
+    (0 rows), which only global place recognition would miss.
+    """
 
     def __init__(
         self,
@@ -111,6 +115,7 @@ class GroundMapper:
         runtime: Runtime,
         *,
         keep_geometries: bool = False,
+        frame_descriptors: bool = True,
     ) -> None:
         self.cfg = cfg
         self.primitives = primitives
@@ -125,6 +130,9 @@ class GroundMapper:
         # Every submap's flattened points, for writing and evaluating submaps; a localizer does
         # not need them and on a long drive they would be most of its memory.
         self.geometries: list[SubmapGeometry] | None = [] if keep_geometries else None
+        # Only global place recognition reads frame descriptors; a localizer that matches by
+        # another mode leaves them out (about a tenth of ground mapping's time).
+        self.frame_descriptors = frame_descriptors
         self._n_submaps = 0
         self._last_descriptor_xyz: np.ndarray | None = None
         self._clock_origin: float | None = None  # mapping_rate_hz's clock: the first frame's time
@@ -135,12 +143,13 @@ class GroundMapper:
 
     @classmethod
     def from_config(
-        cls, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime, *, keep_geometries: bool = False
+        cls, cfg: MeridianConfig, camera: CameraModel, runtime: Runtime, *, keep_geometries: bool = False,
+        frame_descriptors: bool = True,
     ) -> "GroundMapper":
         # perception.ground_engine decides whether models run in torch or onnxruntime
         segmenter, describer, global_describer = build_ground_perception(cfg.perception)
         return cls(cfg.ground_map, cfg.primitives, camera, segmenter, describer, global_describer, runtime,
-                   keep_geometries=keep_geometries)
+                   keep_geometries=keep_geometries, frame_descriptors=frame_descriptors)
 
     @property
     def num_submaps(self) -> int:
@@ -210,7 +219,7 @@ class GroundMapper:
                     last = xyz
             self._last_descriptor_xyz = last
             global_desc = None
-            if wanted:
+            if wanted and self.frame_descriptors:
                 with stage("global descriptors"):
                     global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32)
 
@@ -220,7 +229,7 @@ class GroundMapper:
                 if self.frames:
                     step = np.linalg.norm(T_odom_base[b, :3, 3] - self.frames[-1].T_odom_base[:3, 3])
                     path = self.frames[-1].path_length_m + float(step)
-                desc = global_desc[wanted.index(b)] if b in wanted else None
+                desc = global_desc[wanted.index(b)] if global_desc is not None and b in wanted else None
                 self.frames.append(_FrameRecord(float(times[b]), T_odom_base[b], T_odom_camera[b, :3, 3].copy(),
                                                 path, desc))
                 with stage("tracking"):
@@ -301,6 +310,8 @@ class GroundMapper:
         )
 
     def _frame_descriptors(self, segments: list[TrackedSegment], centre: _FrameRecord, times: np.ndarray) -> torch.Tensor:
+        if not self.frame_descriptors:
+            return torch.zeros(0, self.global_describer.dim)
         first = np.array([s.first_seen for s in segments])
         last = np.array([s.last_seen for s in segments])
         t0, t1 = last.min(), first.max()

@@ -33,6 +33,7 @@ from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame
 from meridian_torch.mapping.ground_map import GroundMapper, PerceivedFrames
+from meridian_torch.matching.place_recognition import resolved_mode
 from meridian_torch.runtime import Runtime
 from meridian_torch.types import AerialMap, GroundSubmap
 
@@ -77,7 +78,9 @@ class LiveLocalizer:
         matcher: Matcher | None = None,
     ) -> None:
         self.camera = camera
-        self.mapper = GroundMapper.from_config(cfg, camera, runtime)
+        # frame descriptors only when place recognition on this map reads them
+        pr_mode = resolved_mode(cfg.matching.place_recognition, len(aerial_map))
+        self.mapper = GroundMapper.from_config(cfg, camera, runtime, frame_descriptors=pr_mode == "global")
         # matching runs where the map's primitives are: on the runtime's device
         self.localizer = Localizer(aerial_map.to(runtime.device), cfg, seed=seed, matcher=matcher, online_covariance=cfg.backend.covariance)
         self.submaps: list[GroundSubmap] = []
