@@ -259,6 +259,10 @@ class GroundMapConfig(StrictModel):
         default=5.0, gt=0, description="travel between frame global descriptors (submap descriptor stack)"
     )
     batch_size: int = Field(default=8, ge=1, description="frames segmented together by map_ground")
+    perception_threads: int = Field(
+        default=2, ge=1, description="batches perceived side by side while the tracker integrates an earlier one "
+        "(each holds its batch's images, masks and features in memory)",
+    )
     max_odometry_gap_s: float = Field(
         default=1.0, gt=0, description="frames whose odometry would be interpolated across a longer gap between "
         "poses are refused before the run (a 10 s gap over a turn was bridged 6 m / 65 deg off)",

@@ -332,38 +332,44 @@ class GroundMapper:
 
 def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Iterator[PerceivedFrames]:
     """The frames due (`GroundMapper.due`) among the first `n_frames` of `reader`, in batches of
-    `ground_map.batch_size`, in a three-stage pipeline: a reader thread decodes batch k + 2 while
-    a perception thread perceives batch k + 1 and the caller integrates batch k (the tracker and
-    submaps are serial; the threads keep the other core busy meanwhile, and image decoding off the
-    perception thread's critical path). The batches and their contents are those of a plain loop
-    over the frames due; both threads record their stages into the caller's stage table."""
+    `ground_map.batch_size`, in a pipeline: a reader thread decodes batch k + P + 1 while P =
+    `ground_map.perception_threads` threads perceive batches k + 1 .. k + P and the caller
+    integrates batch k (the tracker and submaps are serial). Perception is stateless; a second
+    batch in flight fills the cores at the seams between one batch's stages and while the caller
+    waits. The batches and their contents are those of a plain loop over the frames due; every
+    thread records its stages into the caller's stage table."""
     mapped = np.flatnonzero(mapper.due(reader.frame_times[:n_frames]))  # the others are never decoded
     starts = list(range(0, len(mapped), mapper.cfg.batch_size))
+    perceivers = mapper.cfg.perception_threads
 
     def read(start: int) -> list[Frame]:
         with stage("read frames"):
             return [reader[int(i)] for i in mapped[start : start + mapper.cfg.batch_size]]
 
+    def perceive(frames: Future[list[Frame]]) -> PerceivedFrames:
+        return mapper.perceive(frames.result())
+
     with ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
-            ThreadPoolExecutor(1, thread_name_prefix="meridian-perceive") as perceive_pool:
+            ThreadPoolExecutor(perceivers, thread_name_prefix="meridian-perceive") as perceive_pool:
         reads: dict[int, Future[list[Frame]]] = {}  # batch -> its frames being decoded
+        perceiving: dict[int, Future[PerceivedFrames]] = {}
+        n_read = n_perceiving = 0  # batches handed to each pool so far
 
-        def read_ahead(k: int) -> None:
-            if k < len(starts):
-                reads[k] = read_pool.submit(contextvars.copy_context().run, read, starts[k])
+        def top_up(k: int) -> None:
+            """Batches k .. k + perceivers - 1 being perceived, the next one being decoded."""
+            nonlocal n_read, n_perceiving
+            while n_read < min(k + perceivers + 1, len(starts)):
+                reads[n_read] = read_pool.submit(contextvars.copy_context().run, read, starts[n_read])
+                n_read += 1
+            while n_perceiving < min(k + perceivers, len(starts)):
+                perceiving[n_perceiving] = perceive_pool.submit(
+                    contextvars.copy_context().run, perceive, reads.pop(n_perceiving))
+                n_perceiving += 1
 
-        def perceive(k: int) -> PerceivedFrames:
-            read_ahead(k + 1)  # decoded while this batch is perceived
-            return mapper.perceive(reads.pop(k).result())
-
-        if not starts:
-            return
-        read_ahead(0)
-        ahead = perceive_pool.submit(contextvars.copy_context().run, perceive, 0)
         for k in range(len(starts)):
-            batch = ahead.result()
-            if k + 1 < len(starts):
-                ahead = perceive_pool.submit(contextvars.copy_context().run, perceive, k + 1)
+            top_up(k)
+            batch = perceiving.pop(k).result()
+            top_up(k + 1)  # the next batches go on while the caller integrates this one
             yield batch
 
 
@@ -371,7 +377,7 @@ def ground_map_config_dict(cfg: MeridianConfig) -> dict[str, Any]:
     """The config blocks that shape ground submaps (stored in submap files)."""
     p = cfg.perception
     return {
-        "ground_map": cfg.ground_map.model_dump(mode="json", exclude={"batch_size"}),
+        "ground_map": cfg.ground_map.model_dump(mode="json", exclude={"batch_size", "perception_threads"}),
         "perception": {
             "ground_segmenter": active_backend_dict(p.ground_segmenter),
             "descriptor": active_backend_dict(p.descriptor),
