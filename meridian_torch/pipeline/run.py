@@ -3,8 +3,8 @@
 Frames go to the ground mapper in the order they were recorded (those due at
 `ground_map.mapping_rate_hz`; the others only carry odometry to the localizer); every submap it
 completes goes to the localizer at once, stamped with the time of the frame that completed it, so
-the incremental trajectory only uses what was known online. `finalize` then runs the offline pass for the final
-trajectory. Stage timings and the real-time factor make the run's cost visible.
+the incremental trajectory only uses what was known online. `finalize` then runs the offline pass
+for the final trajectory. Stage timings and the real-time factor make the run's cost visible.
 """
 
 from __future__ import annotations
