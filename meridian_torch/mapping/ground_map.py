@@ -6,12 +6,13 @@ together) returns the submaps completed by those frames; `finish` flushes the la
 ground_submaps for the stages and the reference rules they follow.
 
 Frames come faster than the mapper needs them on many robots (cameras at 10-30 Hz); like the
-paper, which maps at a fixed 6 Hz, only the first frame of each 1 / `mapping_rate_hz` interval of a
-clock started at the first frame is mapped (`frames_to_map`); the others still carry odometry to
-the localizer.
+paper, which maps at a fixed 6 Hz, only the first frame of each 1 / `mapping_rate_hz` interval
+of a clock started at the first frame is mapped (`frames_to_map`); the others still carry
+odometry to the localizer.
 
-Per frame mapped: segment, describe the masks, build the observations; a global (place-recognition)
-descriptor is computed only when the camera moved `frame_descriptor_dist_m` since the last one;
+Per frame mapped: segment, describe the masks, build the observations; a global
+(place-recognition) descriptor is computed only when the camera moved `frame_descriptor_dist_m`
+since the last one;
 update the tracker; check the submap trigger. A submap's centre is the frame nearest in time to
 the median of its NEW segments' (first_seen + last_seen) / 2 (non-decreasing; the reference
 takes the mean over all selected segments, which with few segments per frame reaches back to the
@@ -162,11 +163,15 @@ class GroundMapper:
     def add_frames(self, frames: Sequence[Frame]) -> list[GroundSubmap]:
         """Process frames in time order, segmenting those due (`due`) as one batch; returns
         completed submaps."""
-        due = self.due([f.timestamp for f in frames])
-        mapped = [f for f, d in zip(frames, due) if d]
+        mapped, _ = self.split_due(frames)
         if not mapped:
             return []
         return self.integrate(self.perceive(mapped))
+
+    def split_due(self, frames: Sequence[Frame]) -> tuple[list[Frame], list[Frame]]:
+        """The next frames offered (`due`), split into those to map and those that only carry odometry."""
+        due = self.due([f.timestamp for f in frames])
+        return [f for f, d in zip(frames, due) if d], [f for f, d in zip(frames, due) if not d]
 
     def due(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
         """(N,) bool: which of the next frames offered (their times, after every earlier call's) to
@@ -210,16 +215,16 @@ class GroundMapper:
         if self.frames and times[0] <= self.frames[-1].time:
             raise ValueError(f"frame time {times[0]} is not after the previous frame's {self.frames[-1].time}")
         with torch.inference_mode():
-            # global descriptors only every frame_descriptor_dist_m of camera travel
+            # global descriptors (when kept) only every frame_descriptor_dist_m of camera travel
             wanted, last = [], self._last_descriptor_xyz
-            for b in range(len(batch)):
+            for b in range(len(batch) if self.frame_descriptors else 0):
                 xyz = T_odom_camera[b, :3, 3]
                 if last is None or np.linalg.norm(xyz - last) >= self.cfg.frame_descriptor_dist_m:
                     wanted.append(b)
                     last = xyz
             self._last_descriptor_xyz = last
             global_desc = None
-            if wanted and self.frame_descriptors:
+            if wanted:
                 with stage("global descriptors"):
                     global_desc = self.global_describer.describe(images[wanted]).to("cpu", torch.float32)
 
@@ -229,7 +234,7 @@ class GroundMapper:
                 if self.frames:
                     step = np.linalg.norm(T_odom_base[b, :3, 3] - self.frames[-1].T_odom_base[:3, 3])
                     path = self.frames[-1].path_length_m + float(step)
-                desc = global_desc[wanted.index(b)] if global_desc is not None and b in wanted else None
+                desc = global_desc[wanted.index(b)] if b in wanted else None
                 self.frames.append(_FrameRecord(float(times[b]), T_odom_base[b], T_odom_camera[b, :3, 3].copy(),
                                                 path, desc))
                 with stage("tracking"):

@@ -101,15 +101,14 @@ class LiveLocalizer:
             raise ValueError("add_frames needs at least one frame")
         for frame in frames:
             self._check(frame)
-        due = self.mapper.due([f.timestamp for f in frames])
-        skipped = [f for f, d in zip(frames, due) if not d]
+        mapped, skipped = self.mapper.split_due(frames)
         skipped_times = np.array([f.timestamp for f in skipped], dtype=np.float64)
         skipped_poses = np.array([f.T_odom_base for f in skipped], dtype=np.float64).reshape(-1, 4, 4)
-        if not due.any():
+        if not mapped:
             return self.add_odometry(skipped_times, skipped_poses)
         started = time.perf_counter()
         with stage("ground mapping"):
-            batch = self.mapper.perceive([f for f, d in zip(frames, due) if d])
+            batch = self.mapper.perceive(mapped)
         self.mapping_seconds += time.perf_counter() - started
         return self.add_perceived(batch, skipped=(skipped_times, skipped_poses))
 
