@@ -233,6 +233,15 @@ class AerialMap:
     def __len__(self) -> int:
         return len(self.patches)
 
+    @property
+    def global_descriptor_backend(self) -> str | None:
+        """The back end that computed `global_descriptors` (perception.global_descriptor.backend of
+        the build), None when the map does not record it."""
+        perception = self.config.get("perception")
+        block = perception.get("global_descriptor") if isinstance(perception, dict) else None
+        backend = block.get("backend") if isinstance(block, dict) else None
+        return backend if isinstance(backend, str) else None
+
     def to(self, device: torch.device | str) -> "AerialMap":
         """The map with its primitives and global descriptors on `device` (the same map when
         they are there already)."""

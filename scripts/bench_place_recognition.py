@@ -11,6 +11,13 @@ patches; more decoys repeat the three mirrors at other places).
         -c configs/kitti02.yaml --submaps runs/kitti02/submaps.pt --threads 1
 
 Submaps are built with the config's ground mapping on the first run and cached (`--submaps`).
+
+When the submaps carry frame global descriptors (as `map-ground` and this script build them),
+two more rankings are scored: "global", the map's global descriptors alone (the paper's place
+recognition, `mode: global`), and "fused", the chain's ranking fused with it by reciprocal rank
+fusion (`mode: coarse` with `global_fusion`, which 'auto' turns on for neural descriptors only).
+Decoy patches carry the global descriptor of the patch they copy (for the descriptors, a decoy is
+then as likely as its original: the worst case).
 """
 
 from __future__ import annotations
@@ -38,6 +45,8 @@ from meridian_torch.matching.place_recognition import (  # noqa: E402
     build_coarse_map,
     chain_scores,
     patch_priors,
+    rank_fusion,
+    stack_similarity,
     submap_scores,
 )
 from meridian_torch.types import PrimitiveBatch  # noqa: E402
@@ -112,7 +121,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config, args.set)
-    ccfg = cfg.matching.place_recognition.coarse
+    pr_cfg = cfg.matching.place_recognition
+    ccfg = pr_cfg.coarse
     amap = load_aerial_map(args.map or args.sequence / "aerial.mtm")
     reader = SequenceReader(args.sequence)
     submaps = load_submaps(args.sequence, cfg, args.submaps, args.max_frames)[: args.limit]
@@ -131,6 +141,7 @@ def main() -> None:
         cmap = build_coarse_map(batch, torch.as_tensor(bounds), ccfg)
         build_s = time.perf_counter() - t0
         ranks = {"single": [], "chain": []}
+        patch_descriptors = amap.global_descriptors.repeat(n_decoys + 1, 1)
         yaw_err, seconds = [], []
         chain, previous_centre = None, None
         for sm, (true_patch, true_yaw) in zip(submaps, truth):
@@ -144,9 +155,16 @@ def main() -> None:
             previous_centre = centre
             if true_patch is None:
                 continue
-            for name, pr in priors.items():
-                better = (pr.score > pr.score[true_patch]).sum()
-                ranks[name].append(int(better) + 1)
+            scores = {name: pr.score for name, pr in priors.items()}
+            if len(sm.frame_descriptors):
+                frames = sm.frame_descriptors.to(patch_descriptors)
+                similarity = stack_similarity(frames[None], torch.ones(1, len(frames), dtype=torch.bool),
+                                              patch_descriptors)
+                scores["global"] = similarity[0]
+                scores["fused"] = rank_fusion([scores["chain"][None], similarity], pr_cfg.fusion_rank_constant)[0]
+            for name, score in scores.items():
+                better = (score > score[true_patch]).sum()
+                ranks.setdefault(name, []).append(int(better) + 1)
             err = float(priors["chain"].yaw[true_patch]) - true_yaw
             yaw_err.append(abs(math.degrees(wrap_angle(err))))
         row = {
@@ -154,7 +172,7 @@ def main() -> None:
             "s_per_submap": round(float(np.median(seconds)), 3), "submaps": len(ranks["chain"]),
             **{f"{name}_recall@{k}": round(float(np.mean(np.array(r) <= k)), 3)
                for name, r in ranks.items() for k in (1, 5, 25)},
-            "chain_ranks": ranks["chain"], "single_ranks": ranks["single"],
+            **{f"{name}_ranks": r for name, r in ranks.items()},
             "chain_yaw_err_deg_median": round(float(np.median(yaw_err)), 1),
             "overrides": args.set, "threads": args.threads,
         }

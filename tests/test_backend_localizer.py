@@ -616,6 +616,34 @@ def test_auto_mode_above_the_exhaustive_limit_matches_the_coarse_search_candidat
     assert times.calls["place recognition/coarse map"] == 1 and times.calls["place recognition/coarse search"] == 3
 
 
+@pytest.mark.parametrize("fusion", ["always", "never"])
+def test_coarse_mode_fuses_the_frames_global_descriptors_when_asked(fusion: str) -> None:
+    """The patches a submap gets are the top k of the coarse search, fused with its frames' max
+    cosine to the map's global descriptors when fusion is on (computed here from the parts)."""
+    from meridian_torch.backend.results import StageSeconds
+    from meridian_torch.backend.submap_matching import SubmapMatching
+    from meridian_torch.matching.place_recognition import CoarseSearch, rank_fusion, stack_similarity
+
+    world = World(seed=2, n_frames=120)
+    cfg = _cfg()
+    pr = cfg.matching.place_recognition.model_copy(update={"mode": "coarse", "k_coarse": 5, "global_fusion": fusion})
+    cfg = cfg.model_copy(update={"matching": cfg.matching.model_copy(update={"place_recognition": pr})})
+    aerial_map = make_map()
+    submap = world.submaps()[2]
+    # the submap's second frame looks like patch 7
+    submap = dataclasses.replace(submap, frame_descriptors=torch.stack([submap.frame_descriptors[0],
+                                                                         aerial_map.global_descriptors[7]]))
+    patches = SubmapMatching(aerial_map, cfg, world.matcher, 0, StageSeconds()).place_recognition_patches(submap)
+    bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
+    coarse = CoarseSearch(aerial_map.primitives, bounds, pr.coarse).add_submap(
+        submap.primitives, torch.as_tensor(submap.T_odom_base[:2, 3])).score[None]
+    similarity = stack_similarity(submap.frame_descriptors[None], torch.ones(1, 2, dtype=torch.bool),
+                                  aerial_map.global_descriptors)
+    expected = rank_fusion([coarse, similarity], pr.fusion_rank_constant) if fusion == "always" else coarse
+    assert patches.tolist() == expected[0].topk(5).indices.tolist()
+    assert (7 in patches.tolist()) == (fusion == "always")  # the coarse search alone ranks it lower
+
+
 def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int):
     """The localizer after submaps 0..last_submap of a world whose submaps `shift_m` are shifted."""
     world = World(seed=1, n_frames=400)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 import torch
 
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.errors import ConfigError
 from meridian_torch.io.ortho import read_orthophoto
 from meridian_torch.io.sequence import SequenceReader
 from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
@@ -104,12 +106,30 @@ def test_submaps_come_denser_from_the_fix_on(tmp_path: Path) -> None:
     assert after.min() >= 12.0 - 1e-9 and (after < cfg.ground_map.submap_min_path_m).any()
 
 
-def test_frame_descriptors_are_computed_only_for_global_place_recognition(world) -> None:
+def test_frame_descriptors_are_computed_only_when_place_recognition_reads_them(world) -> None:
     reader, aerial_map = world
-    for mode, wanted in (("auto", False), ("exhaustive", False), ("global", True)):
-        cfg = load_config(CONFIG_DIR / "tiny.yaml", [*CFG_OVERRIDES, f"matching.place_recognition.mode={mode}"])
+    cases = (("auto", "auto", False), ("exhaustive", "auto", False), ("global", "auto", True),
+             ("coarse", "auto", False), ("coarse", "always", True))  # the tiny map's descriptors are classical
+    for mode, fusion, wanted in cases:
+        cfg = load_config(CONFIG_DIR / "tiny.yaml", [*CFG_OVERRIDES, f"matching.place_recognition.mode={mode}",
+                                                     f"matching.place_recognition.global_fusion={fusion}"])
         live = LiveLocalizer(aerial_map, cfg, reader.camera, resolve_runtime(cfg.runtime))
-        assert live.mapper.frame_descriptors is wanted, mode
+        assert live.mapper.frame_descriptors is wanted, (mode, fusion)
+
+
+def test_descriptors_of_another_global_back_end_than_the_map_are_refused(world) -> None:
+    reader, aerial_map = world
+    perception = {**aerial_map.config["perception"], "global_descriptor": {"backend": "anyloc"}}
+    anyloc_map = dataclasses.replace(aerial_map, config={**aerial_map.config, "perception": perception})
+    assert anyloc_map.global_descriptor_backend == "anyloc" and aerial_map.global_descriptor_backend == "classical"
+    coarse = [*CFG_OVERRIDES, "matching.place_recognition.mode=coarse"]
+    with pytest.raises(ConfigError, match="'classical'.*'anyloc'"):
+        LiveLocalizer(anyloc_map, load_config(CONFIG_DIR / "tiny.yaml", coarse), reader.camera,
+                      resolve_runtime(CFG.runtime))
+    # without fusion the map's descriptors are never read: nothing to refuse
+    cfg = load_config(CONFIG_DIR / "tiny.yaml", [*coarse, "matching.place_recognition.global_fusion=never"])
+    live = LiveLocalizer(anyloc_map, cfg, reader.camera, resolve_runtime(cfg.runtime))
+    assert live.mapper.frame_descriptors is False
 
 
 @pytest.mark.slow

@@ -8,7 +8,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from meridian_torch.config.matching import PlaceRecognitionConfig
-from meridian_torch.matching.place_recognition import disk_overlap, select_patches, stack_similarity
+from meridian_torch.matching.place_recognition import (
+    disk_overlap,
+    fuses_global,
+    rank_fusion,
+    reads_global_descriptors,
+    select_patches,
+    stack_similarity,
+)
 
 
 def test_stack_similarity_is_max_cosine_over_valid_frames() -> None:
@@ -23,6 +30,58 @@ def test_stack_similarity_is_max_cosine_over_valid_frames() -> None:
                    for f in range(4) if valid[s, f]]
             expected = max(cos) if cos else torch.tensor(float("-inf"))
             assert torch.allclose(sim[s, p], torch.as_tensor(expected), atol=1e-6)
+
+
+def test_stack_similarity_without_frames_ranks_no_patch() -> None:
+    sim = stack_similarity(torch.zeros(2, 0, 8), torch.zeros(2, 0, dtype=torch.bool), torch.randn(5, 8))
+    assert sim.shape == (2, 5) and torch.isneginf(sim).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.lists(st.sampled_from([0.0, 0.5, 1.0, 2.0, -1.0, math.inf, -math.inf, math.nan]), min_size=4,
+                         max_size=4), min_size=1, max_size=3),
+       st.floats(0.5, 100.0))
+def test_rank_fusion_equals_a_loop_over_patches(rows: list[list[float]], k: float) -> None:
+    """Each ranking adds 1 / (k + rank) for its finite scores, rank 1 the best, ties to the lower index."""
+    scores = [torch.tensor([row], dtype=torch.float64) for row in rows]
+    fused = rank_fusion(scores, k)[0]
+    for p in range(4):
+        total, ranked = 0.0, False
+        for row in rows:
+            if not math.isfinite(row[p]):
+                continue
+            rank = 1 + sum(1 for q in range(4) if math.isfinite(row[q]) and (row[q] > row[p] or (row[q] == row[p] and q < p)))
+            total += 1.0 / (k + rank)
+            ranked = True
+        assert (fused[p].item() == pytest.approx(total, rel=1e-12)) if ranked else fused[p].item() == -math.inf
+
+
+def test_coarse_mode_fused_with_similarity_takes_the_patches_both_rankings_favour() -> None:
+    cfg = PlaceRecognitionConfig(mode="coarse", k_coarse=2)
+    coarse = torch.tensor([[0.9, 0.8, 0.7, 0.6, 0.1]])
+    # patch 0: 1st by the coarse search, 2nd by the descriptors; patch 1: 2nd and last; patch 4:
+    # last by the coarse search, 1st by the descriptors (1/65 + 1/61 > 1/62 + 1/65)
+    similarity = torch.tensor([[0.5, 0.1, 0.2, 0.3, 0.9]])
+    idx, valid = select_patches(cfg, 1, 5, coarse_scores=coarse)
+    assert idx[0].tolist() == [0, 1] and valid.all()
+    idx, valid = select_patches(cfg, 1, 5, coarse_scores=coarse, similarity=similarity)
+    assert idx[0].tolist() == [0, 4] and valid.all()
+    # a submap without frame descriptors (similarity all -inf) falls back to the coarse ranking
+    idx, _ = select_patches(cfg, 1, 5, coarse_scores=coarse, similarity=torch.full((1, 5), -math.inf))
+    assert idx[0].tolist() == [0, 1]
+
+
+def test_fusion_is_on_for_neural_global_descriptors_in_coarse_mode_only() -> None:
+    auto = PlaceRecognitionConfig(mode="auto", exhaustive_max_patches=10)
+    # 'auto' on a small map is exhaustive: nothing to fuse, no descriptors read
+    assert not fuses_global(auto, 10, "anyloc") and not reads_global_descriptors(auto, 10, "anyloc")
+    assert fuses_global(auto, 11, "anyloc") and fuses_global(auto, 11, "gem")
+    assert not fuses_global(auto, 11, "classical") and not fuses_global(auto, 11, None)
+    always = PlaceRecognitionConfig(mode="coarse", global_fusion="always")
+    never = PlaceRecognitionConfig(mode="coarse", global_fusion="never")
+    assert fuses_global(always, 5, "classical") and not fuses_global(never, 5, "anyloc")
+    assert reads_global_descriptors(PlaceRecognitionConfig(mode="global"), 5, "classical")
+    assert not fuses_global(PlaceRecognitionConfig(mode="global", global_fusion="always"), 5, "anyloc")
 
 
 def test_global_mode_takes_the_top_k_and_flags_missing() -> None:

@@ -63,9 +63,26 @@ from meridian_torch.errors import ConfigError
 from meridian_torch.geometry.planar import wrap_angle, yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.match import match_submap
+from meridian_torch.matching.place_recognition import reads_global_descriptors
 from meridian_torch.types import AerialMap, GroundSubmap
 
 __all__ = ["Localizer", "localize_offline"]
+
+
+def _check_global_descriptors(aerial_map: AerialMap, cfg: MeridianConfig) -> None:
+    """Refuse a place recognition that would compare the frames' global descriptors with a map's
+    made by another back end (their similarities would mean nothing)."""
+    pr = cfg.matching.place_recognition
+    map_backend = aerial_map.global_descriptor_backend
+    run_backend = cfg.perception.global_descriptor.backend
+    if map_backend is None or map_backend == run_backend or not reads_global_descriptors(pr, len(aerial_map), map_backend):
+        return
+    raise ConfigError(
+        f"perception.global_descriptor.backend is '{run_backend}', but the aerial map's global descriptors were "
+        f"made by '{map_backend}', and place recognition ('{pr.mode}', global_fusion '{pr.global_fusion}') compares "
+        "the two: use the map's back end, rebuild the map with this one, or set "
+        "matching.place_recognition.global_fusion: never"
+    )
 
 
 class Localizer:
@@ -104,6 +121,7 @@ class Localizer:
                 "matching.place_recognition.mode: 'near' needs a pose estimate; use 'auto', 'coarse', 'global' or "
                 "'exhaustive' for localization (the localizer switches to 'near' by itself after the fix)"
             )
+        _check_global_descriptors(aerial_map, cfg)
         if (odometry is None) != (frame_times is None):
             raise ValueError("give both odometry and frame_times, or neither (frames then come through add_frames)")
         self.aerial_map = aerial_map

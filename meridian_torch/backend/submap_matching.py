@@ -16,6 +16,7 @@ from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
 from meridian_torch.matching.place_recognition import (
     CoarseSearch,
+    reads_global_descriptors,
     resolved_mode,
     select_patches,
     stack_similarity,
@@ -62,7 +63,7 @@ class SubmapMatching:
         pr = self.cfg.matching.place_recognition
         n_patches = len(self.aerial_map)
         similarity = None
-        if resolved_mode(pr, n_patches) == "global":
+        if reads_global_descriptors(pr, n_patches, self.aerial_map.global_descriptor_backend):
             frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
             valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
             similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)

@@ -244,6 +244,18 @@ class PlaceRecognitionConfig(StrictModel):
     )
     k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
     k_coarse: int = Field(default=25, ge=1, description="patches per submap in 'coarse' mode")
+    global_fusion: Literal["auto", "always", "never"] = Field(
+        default="auto",
+        description="'coarse' mode: fuse the coarse search's patch ranking with the global descriptors' "
+        "(reciprocal rank fusion). 'auto': only when the map's global descriptors come from a neural back end "
+        "(anyloc, gem), as the classical ones rank the true patch at chance; 'always', 'never'",
+    )
+    fusion_rank_constant: float = Field(
+        default=60.0,
+        gt=0,
+        description="k of the reciprocal rank fusion: a patch scores 1 / (k + rank) in each ranking (rank 1 = "
+        "best), so a large k flattens the advantage of the first ranks (60: the usual choice, not tuned here)",
+    )
     coarse: CoarseSearchConfig = Field(default_factory=CoarseSearchConfig)
     near_radius_m: float = Field(default=25.0, gt=0, description="disk radius around the predicted position, 'near' mode")
     near_patches: int = Field(default=2, ge=1, description="patches kept in 'near' mode (largest overlap first)")

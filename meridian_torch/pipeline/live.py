@@ -33,7 +33,7 @@ from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame
 from meridian_torch.mapping.ground_map import GroundMapper, PerceivedFrames
-from meridian_torch.matching.place_recognition import resolved_mode
+from meridian_torch.matching.place_recognition import reads_global_descriptors
 from meridian_torch.runtime import Runtime
 from meridian_torch.types import AerialMap, GroundSubmap
 
@@ -79,8 +79,8 @@ class LiveLocalizer:
     ) -> None:
         self.camera = camera
         # frame descriptors only when place recognition on this map reads them
-        pr_mode = resolved_mode(cfg.matching.place_recognition, len(aerial_map))
-        self.mapper = GroundMapper.from_config(cfg, camera, runtime, frame_descriptors=pr_mode == "global")
+        reads = reads_global_descriptors(cfg.matching.place_recognition, len(aerial_map), aerial_map.global_descriptor_backend)
+        self.mapper = GroundMapper.from_config(cfg, camera, runtime, frame_descriptors=reads)
         # matching runs where the map's primitives are: on the runtime's device
         self.localizer = Localizer(aerial_map.to(runtime.device), cfg, seed=seed, matcher=matcher, online_covariance=cfg.backend.covariance)
         self.submaps: list[GroundSubmap] = []
