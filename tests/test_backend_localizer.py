@@ -24,6 +24,7 @@ from meridian_torch.backend.frames import OnlineUpdate
 from meridian_torch.backend.localizer import Localizer, localize_offline
 from meridian_torch.backend.pose_graph import propagate_covariance
 from meridian_torch.config import MeridianConfig
+from meridian_torch.errors import ConfigError
 from meridian_torch.geometry.planar import se2_from_se3, yaw_of
 from meridian_torch.geometry.se2 import se2_matrix
 from meridian_torch.geometry.se3 import pose_from_xyz_yaw, se3_inverse
@@ -642,6 +643,10 @@ def test_coarse_mode_fuses_the_frames_global_descriptors_when_asked(fusion: str)
     expected = rank_fusion([coarse, similarity], pr.fusion_rank_constant) if fusion == "always" else coarse
     assert patches.tolist() == expected[0].topk(5).indices.tolist()
     assert (7 in patches.tolist()) == (fusion == "always")  # the coarse search alone ranks it lower
+    if fusion == "always":  # descriptors of another describer are refused, not compared
+        other = dataclasses.replace(submap, frame_descriptors=torch.randn(2, D + 1))
+        with pytest.raises(ConfigError, match="5 dimensions, the aerial map's 4"):
+            SubmapMatching(aerial_map, cfg, world.matcher, 0, StageSeconds()).place_recognition_patches(other)
 
 
 def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int):

@@ -14,6 +14,7 @@ from meridian_torch.backend.candidates import LoopClosureCandidates, candidates_
 from meridian_torch.backend.results import Matcher, StageSeconds
 from meridian_torch.config import MeridianConfig
 from meridian_torch.core.timing import stage
+from meridian_torch.errors import ConfigError
 from meridian_torch.matching.place_recognition import (
     CoarseSearch,
     reads_global_descriptors,
@@ -65,6 +66,11 @@ class SubmapMatching:
         similarity = None
         if reads_global_descriptors(pr, n_patches, self.aerial_map.global_descriptor_backend):
             frames = submap.frame_descriptors.to(self.aerial_map.global_descriptors)
+            if len(frames) and frames.shape[1] != self.aerial_map.global_descriptors.shape[1]:
+                raise ConfigError(
+                    f"submap {submap.index}: its frames' global descriptors have {frames.shape[1]} dimensions, the "
+                    f"aerial map's {self.aerial_map.global_descriptors.shape[1]}: they come from different describers"
+                )
             valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
             similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
         coarse_scores = None
