@@ -5,6 +5,8 @@ Runs `localize_sequence` (ground mapping frame by frame, every submap localized 
 then the final offline pass) on one sequence folder and prints:
 - frames/s and the real-time factor (sequence duration / wall time), online (frames and submaps
   as they come) and in total (with the final pass);
+- the process's CPU time (user + system, all threads) while online, and how many cores that kept
+  busy on average: near the machine's core count, only less work can make the run faster;
 - the peak resident memory of the process, and which stages raised it;
 - seconds per stage and sub-stage (perception, 3D observations, tracking, submaps, place
   recognition, associations, affinity, particles, registration, verification, consistency,
@@ -168,10 +170,12 @@ def run_child(args: argparse.Namespace) -> dict:
         profiler = cProfile.Profile()
     stage_times = None
     online_end: list[float] = []
-    started = time.perf_counter()
+    online_cpu: list[float] = []
+    started, cpu_started = time.perf_counter(), time.process_time()
 
     def on_stage(name: str) -> None:
         online_end.append(time.perf_counter())
+        online_cpu.append(time.process_time())
         source.mark(len(source))  # a last pass whose final frames were not mapped (never read)
 
     def go():
@@ -195,8 +199,9 @@ def run_child(args: argparse.Namespace) -> dict:
         tp.export_chrome_trace(str(args.torch_profile))
     else:
         run, stage_times = _with_stages(record_stages, profiled)
-    wall = time.perf_counter() - started
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started
     online = (online_end[0] if online_end else time.perf_counter()) - started
+    cpu_online = (online_cpu[0] if online_cpu else time.process_time()) - cpu_started
 
     metrics = None
     if source.groundtruth is not None:
@@ -214,6 +219,9 @@ def run_child(args: argparse.Namespace) -> dict:
         "frames_per_s": n / wall,
         "rtf_online": duration / online,
         "rtf_total": duration / wall,
+        "cpu_s": cpu,  # the process's user + system CPU, all threads
+        "cpu_online_s": cpu_online,
+        "cpus": os.cpu_count(),
         "peak_rss_mib": peak_rss_mib(),
         "rss_before_mib": rss_before,
         "load_average": load,
@@ -389,6 +397,8 @@ def report(results: list[tuple[str, dict]]) -> str:
         ("wall time (online + final pass)", lambda r: f"{r['online_s']:.1f} + {r['wall_s'] - r['online_s']:.1f} s"),
         ("frames/s (total)", lambda r: fmt(r["frames_per_s"], ".1f")),
         ("real-time factor online / total", lambda r: f"{r['rtf_online']:.2f} / {r['rtf_total']:.2f}"),
+        ("process CPU online (cores busy on average)", lambda r: "-" if "cpu_online_s" not in r else
+            f"{r['cpu_online_s']:.1f} s ({r['cpu_online_s'] / r['online_s']:.2f} of {r['cpus']})"),
         ("peak RSS", lambda r: fmt(r["peak_rss_mib"], ".0f", " MiB")),
         ("localized (fix at submap)", lambda r: f"{'yes' if r['localized'] else 'no'} ({r['fix_submap']})"),
         ("ATE incremental / final", lambda r: "-" if not r["metrics"] else
