@@ -144,12 +144,14 @@ def main() -> None:
         patch_descriptors = amap.global_descriptors.repeat(n_decoys + 1, 1)
         yaw_err, seconds = [], []
         chain, previous_centre = None, None
+        single_buffer = torch.empty(ccfg.yaws, *cmap.shape)  # reused as the localizer's CoarseSearch does
+        chain_buffer = torch.empty_like(single_buffer)
         for sm, (true_patch, true_yaw) in zip(submaps, truth):
             t1 = time.perf_counter()
             centre = torch.as_tensor(sm.T_odom_base[:2, 3])
-            single = submap_scores(cmap, sm.primitives, centre, ccfg)
+            single = submap_scores(cmap, sm.primitives, centre, ccfg, out=single_buffer)
             step = centre - previous_centre if previous_centre is not None else centre * 0
-            chain = chain_scores(chain, single, step, cmap, ccfg)
+            chain = chain_scores(chain, single, step, cmap, ccfg, out=chain_buffer)
             priors = {"single": patch_priors(cmap, single, ccfg), "chain": patch_priors(cmap, chain, ccfg)}
             seconds.append(time.perf_counter() - t1)
             previous_centre = centre

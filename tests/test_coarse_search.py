@@ -6,6 +6,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from meridian_torch.config.matching import CoarseSearchConfig
 from meridian_torch.matching.place_recognition import (
@@ -126,6 +128,8 @@ def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws(cfg: CoarseSearchC
     ground = _planted_submap(batch, centre, 0.7, torch.tensor([3.0, -2.0]), cfg.radius_m)
     centre_odom = _odom_centre(centre, 0.7, torch.tensor([3.0, -2.0]))
     volume = submap_scores(cmap, ground, centre_odom, cfg)
+    reused = torch.full_like(volume, float("nan"))  # a buffer of an earlier submap: every cell is rewritten
+    assert submap_scores(cmap, ground, centre_odom, cfg, out=reused) is reused and torch.equal(reused, volume)
     h, w = cmap.shape
     side = 2 * math.ceil(cfg.radius_m / cfg.cell_m) + 1
     # the FFT's rounding: sums over the padded grid, relative to the correlation's scale
@@ -177,6 +181,59 @@ def test_chain_step_equals_a_loop_of_shifts_per_yaw() -> None:
                 if 0 <= row - dy < h and 0 <= col - dx < w:
                     moved[row, col] = pooled[k, row - dy, col - dx]
         assert torch.equal(chain[k], scores[k] + 0.5 * moved)
+
+
+def _reference_chain(previous: torch.Tensor, scores: torch.Tensor, step: torch.Tensor, cmap, cfg) -> torch.Tensor:
+    """The chain step as first written: max_pool2d over the slack, two rolls over the yaws, one
+    affine_grid / grid_sample over every yaw."""
+    k = math.ceil(cfg.chain_slack_m / cfg.cell_m)
+    pooled = torch.nn.functional.max_pool2d(previous[None], 2 * k + 1, stride=1, padding=k)[0]
+    pooled = torch.maximum(pooled, torch.maximum(pooled.roll(1, 0), pooled.roll(-1, 0)))
+    yaws = torch.arange(cfg.yaws, dtype=torch.float32) * (2 * math.pi / cfg.yaws)
+    shift_x = torch.cos(yaws) * step[0] - torch.sin(yaws) * step[1]
+    shift_y = torch.sin(yaws) * step[0] + torch.cos(yaws) * step[1]
+    h, w = cmap.shape
+    theta = torch.zeros(cfg.yaws, 2, 3)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0
+    theta[:, 0, 2] = -shift_x / cfg.cell_m * 2 / w
+    theta[:, 1, 2] = -shift_y / cfg.cell_m * 2 / h
+    grid = torch.nn.functional.affine_grid(theta, [cfg.yaws, 1, h, w], align_corners=False)
+    moved = torch.nn.functional.grid_sample(pooled[:, None], grid, mode="nearest", padding_mode="zeros",
+                                            align_corners=False)[:, 0]
+    return scores + cfg.chain_decay * moved
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 5), st.sampled_from([0.0, 2.0, 3.0, 4.0]), st.floats(-30.0, 30.0), st.floats(-30.0, 30.0),
+       st.booleans(), st.integers(0, 2**31 - 1))
+def test_chain_step_equals_pooling_and_sampling_the_whole_volume(
+    yaws: int, slack_m: float, dx: float, dy: float, half_cells: bool, seed: int
+) -> None:
+    """Separable maxima and shifts sampled along each axis give bitwise the volume of max_pool2d,
+    rolls and a full grid_sample, also for shifts of half cells (where nearest rounding ties),
+    and in place over the previous volume."""
+    cfg = CoarseSearchConfig(cell_m=2.0, radius_m=10.0, yaws=yaws, chain_decay=0.7, chain_slack_m=slack_m)
+    batch, bounds = _random_map(3, side=3)
+    cmap = build_coarse_map(batch, bounds, cfg)
+    gen = torch.Generator().manual_seed(seed)
+    previous = torch.rand((yaws, *cmap.shape), generator=gen)
+    previous[previous < 0.2] = 0.0  # ties in the maxima
+    scores = torch.rand((yaws, *cmap.shape), generator=gen)
+    step = torch.tensor([round(dx) + 1.0, round(dy) - 1.0]) if half_cells else torch.tensor([dx, dy])
+    expected = _reference_chain(previous, scores, step, cmap, cfg)
+    assert torch.equal(chain_scores(previous, scores, step, cmap, cfg), expected)
+    in_place = previous.clone()
+    assert torch.equal(chain_scores(in_place, scores, step, cmap, cfg, out=in_place), expected)
+
+
+def test_patch_priors_take_the_first_yaw_of_a_tie() -> None:
+    batch, bounds = _random_map(2, side=3)
+    cmap = build_coarse_map(batch, bounds, CFG)
+    volume = torch.zeros((CFG.yaws, *cmap.shape))
+    volume[[2, 5, 7]] = 1.0  # every cell's best value at yaws 2, 5 and 7
+    priors = patch_priors(cmap, volume, CFG)
+    on_map = torch.isfinite(priors.score)
+    assert on_map.any() and torch.equal(priors.yaw[on_map], torch.full((int(on_map.sum()),), 2 * 2 * math.pi / CFG.yaws))
 
 
 def test_chaining_finds_a_submap_too_poor_to_be_found_alone() -> None:

@@ -35,7 +35,6 @@ __all__ = [
 
 _RASTER_PATCHES = 1024  # patches whose primitives are sampled and rasterised at once
 _OWNER_BLOCK = 32  # cells per side of the blocks whose owners are found together
-_SPECTRUM_BYTES = 1 << 28  # kernel spectra computed at once (yaws chunked to stay below)
 
 
 @dataclass(frozen=True)
@@ -262,12 +261,14 @@ def _yaws(cfg: CoarseSearchConfig) -> torch.Tensor:
 
 
 def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.Tensor,
-                  cfg: CoarseSearchConfig) -> torch.Tensor:
+                  cfg: CoarseSearchConfig, *, out: torch.Tensor | None = None) -> torch.Tensor:
     """(yaws, H, W) Pearson correlation of the submap (odom frame, centred at `centre_odom_xy`)
     rotated by each yaw and centred on each cell, with the map inside the submap's disk.
 
     A submap without primitives scores 0 everywhere, and so do cells whose window holds less
-    than `min_window_energy` (empty or nearly empty map).
+    than `min_window_energy` (empty or nearly empty map). `out`: a (yaws, H, W) float32 tensor to
+    write the volume into (a caller scoring submap after submap reuses one; fresh volumes of this
+    size cost as much in page faults as the FFTs).
     """
     r = _radius_cells(cfg)
     side = 2 * r + 1
@@ -289,34 +290,44 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
     kernel_norm = kernel.flatten(1).norm(dim=1)  # (K,)
     fh, fw = cmap.fft_shape
-    # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the first over
-    # the kernel's few rows only (the padded rows are zero)
     h, w = cmap.shape
-    per_yaw = n_classes * fh * (fw // 2 + 1) * 8  # bytes of one yaw's kernel spectra
-    corr = torch.cat([  # yaws in chunks: bounds the spectra's memory on large maps
-        torch.fft.irfft2(
-            torch.einsum("chw,kchw->khw", cmap.map_spectrum,
-                         torch.fft.fft(torch.fft.rfft(torch.flip(part, (-2, -1)), n=fw, dim=-1), n=fh, dim=-2)),
-            s=(fh, fw),
-        )[:, r : r + h, r : r + w]  # full convolution index n = cell + r
-        for part in kernel.split(max(1, _SPECTRUM_BYTES // per_yaw))
-    ])
-    denominator = kernel_norm[:, None, None] * cmap.window_energy.sqrt()[None]
-    ok = (cmap.window_energy >= cfg.min_window_energy)[None] & (kernel_norm > 0)[:, None, None]
-    return torch.where(ok, corr / torch.where(ok, denominator, 1.0), 0.0)
+    volume = torch.empty(len(yaws), h, w) if out is None else out
+    # One yaw at a time through buffers made once per call: the spectra of all yaws at once were
+    # fresh allocations of hundreds of MB, and their page faults took half of the CPU time.
+    spectra = torch.empty(n_classes, fh, fw // 2 + 1, dtype=cmap.map_spectrum.dtype)
+    product = torch.empty_like(spectra)
+    summed = torch.empty(fh, fw // 2 + 1, dtype=spectra.dtype)
+    corr = torch.empty(fh, fw)
+    energy_sqrt = cmap.window_energy.sqrt()
+    ok_cells = cmap.window_energy >= cfg.min_window_energy
+    flipped = torch.flip(kernel, (-2, -1))
+    for y in range(len(yaws)):
+        # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the
+        # first over the kernel's few rows only (the padded rows are zero)
+        torch.fft.fft(torch.fft.rfft(flipped[y], n=fw, dim=-1), n=fh, dim=-2, out=spectra)
+        torch.sum(torch.mul(cmap.map_spectrum, spectra, out=product), 0, out=summed)
+        torch.fft.irfft2(summed, s=(fh, fw), out=corr)
+        if kernel_norm[y] > 0:
+            # full convolution index n = cell + r; Pearson: divided by both norms where the map has energy
+            torch.div(corr[r : r + h, r : r + w], torch.where(ok_cells, kernel_norm[y] * energy_sqrt, 1.0), out=volume[y])
+            volume[y].masked_fill_(~ok_cells, 0.0)
+        else:
+            volume[y].zero_()
+    return volume
 
 
 def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_xy: torch.Tensor,
-                 cmap: CoarseMap, cfg: CoarseSearchConfig) -> torch.Tensor:
+                 cmap: CoarseMap, cfg: CoarseSearchConfig, *, out: torch.Tensor | None = None) -> torch.Tensor:
     """The chain volume (yaws, H, W) after one more submap: `scores` plus the decayed previous chain,
     max-pooled over the drift slack (cells and neighbouring yaws) and moved by the odometry step
     from the previous submap centre (`step_odom_xy`, odom frame) rotated by each yaw.
+
+    `out`: a (yaws, H, W) tensor to write the chain into; it may be `previous` (updated in place)
+    or `scores`. Without it the result is new, or `scores` itself when there is nothing to add.
     """
     if previous is None or cfg.chain_decay == 0:
-        return scores
-    k = int(math.ceil(cfg.chain_slack_m / cfg.cell_m))
-    pooled = torch.nn.functional.max_pool2d(previous[None], 2 * k + 1, stride=1, padding=k)[0]
-    pooled = torch.maximum(pooled, torch.maximum(pooled.roll(1, 0), pooled.roll(-1, 0)))  # yaw is circular
+        return scores if out is None else out.copy_(scores)
+    pooled = _slack_max(previous, int(math.ceil(cfg.chain_slack_m / cfg.cell_m)))
     yaws = _yaws(cfg)
     step = step_odom_xy.float()
     shift_x = torch.cos(yaws) * step[0] - torch.sin(yaws) * step[1]
@@ -327,16 +338,64 @@ def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_
     theta[:, 0, 0] = theta[:, 1, 1] = 1.0
     theta[:, 0, 2] = -shift_x / cfg.cell_m * 2 / w
     theta[:, 1, 2] = -shift_y / cfg.cell_m * 2 / h
-    grid = torch.nn.functional.affine_grid(theta, [len(yaws), 1, h, w], align_corners=False)
-    moved = torch.nn.functional.grid_sample(
-        pooled[:, None], grid, mode="nearest", padding_mode="zeros", align_corners=False
-    )[:, 0]
-    return scores + cfg.chain_decay * moved
+    result = torch.empty_like(scores) if out is None else out
+    for y in range(len(yaws)):
+        rows, cols = _shift_sources(theta[y : y + 1], h, w)
+        moved = pooled[y].index_select(0, rows.clamp_min(0)).index_select(1, cols.clamp_min(0))
+        moved.masked_fill_((rows < 0)[:, None] | (cols < 0)[None, :], 0.0)
+        torch.add(scores[y], moved.mul_(cfg.chain_decay), out=result[y])
+    return result
+
+
+def _slack_max(volume: torch.Tensor, k: int) -> torch.Tensor:
+    """(yaws, H, W) max over the (2k + 1)^2 cells around each cell (those on the grid) and the
+    neighbouring yaws (circular): max_pool2d's window and two rolls, as separable passes of
+    torch.maximum on shifted views (exact, as any max; max_pool2d at stride 1 took ~20x longer)."""
+    cells = volume.clone()
+    for d in range(1, k + 1):  # along rows, then columns; each pass reads an unchanged copy
+        torch.maximum(cells[..., :-d], volume[..., d:], out=cells[..., :-d])
+        torch.maximum(cells[..., d:], volume[..., :-d], out=cells[..., d:])
+    rows = cells.clone()
+    for d in range(1, k + 1):
+        torch.maximum(rows[:, :-d], cells[:, d:], out=rows[:, :-d])
+        torch.maximum(rows[:, d:], cells[:, :-d], out=rows[:, d:])
+    if len(rows) == 1:
+        return rows
+    out = cells  # its contents are spent: the yaw pass writes into it
+    torch.maximum(rows[1:], rows[:-1], out=out[1:])
+    torch.maximum(rows[0], rows[-1], out=out[0])
+    torch.maximum(out[:-1], rows[1:], out=out[:-1])
+    torch.maximum(out[-1], rows[0], out=out[-1])
+    return out
+
+
+def _shift_sources(theta: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Source row (H,) and column (W,) of each output cell of
+    grid_sample(mode="nearest", padding_mode="zeros", align_corners=False) on the affine_grid of the
+    translation `theta` (1, 2, 3), -1 where it falls off the grid. A translation's grid is
+    separable, so grid_sample itself runs on index ramps along one axis: the rounding is its own,
+    at the cost of H + W samples instead of H W."""
+    grid_x = torch.nn.functional.affine_grid(theta, [1, 1, 1, w], align_corners=False)
+    grid_x[..., 1] = 0.0  # the ramp's one row
+    ramp_x = torch.arange(1, w + 1, dtype=torch.float32).view(1, 1, 1, w)
+    cols = torch.nn.functional.grid_sample(ramp_x, grid_x, mode="nearest", padding_mode="zeros", align_corners=False)
+    grid_y = torch.nn.functional.affine_grid(theta, [1, 1, h, 1], align_corners=False)
+    grid_y[..., 0] = 0.0
+    ramp_y = torch.arange(1, h + 1, dtype=torch.float32).view(1, 1, h, 1)
+    rows = torch.nn.functional.grid_sample(ramp_y, grid_y, mode="nearest", padding_mode="zeros", align_corners=False)
+    return rows.view(h).long() - 1, cols.view(w).long() - 1
 
 
 def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig) -> CoarsePriors:
     """Best score of each patch over its cells and all yaws, with the yaw and centre where it is."""
-    best, best_yaw = volume.amax(0).reshape(-1), volume.argmax(0).reshape(-1)
+    # amax / argmax over the yaws as one pass per yaw (argmax along the outer axis is slow):
+    # strictly greater only, so the first yaw of a tie wins, as argmax's
+    best, best_yaw = volume[0].clone(), torch.zeros(volume.shape[1:], dtype=torch.int64)
+    for y in range(1, len(volume)):
+        better = volume[y] > best
+        best = torch.where(better, volume[y], best)
+        best_yaw.masked_fill_(better, y)
+    best, best_yaw = best.reshape(-1), best_yaw.reshape(-1)
     on_map = cmap.cell_patch >= 0
     owner = cmap.cell_patch.clamp_min(0)
     value = torch.where(on_map, best, float("-inf"))
@@ -362,14 +421,17 @@ class CoarseSearch:
     def __init__(self, primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> None:
         self.cfg = cfg
         self.map = build_coarse_map(primitives, bounds_xy, cfg)
+        # the volumes live in two buffers for the whole drive (fresh ones cost page faults)
+        self._single = torch.empty(cfg.yaws, *self.map.shape)
         self._chain: torch.Tensor | None = None
         self._previous_centre: torch.Tensor | None = None
 
     def add_submap(self, ground: PrimitiveSet, centre_odom_xy: torch.Tensor) -> CoarsePriors:
         """Score the next submap (odom frame, centred at `centre_odom_xy`) chained with the earlier ones."""
         centre = torch.as_tensor(centre_odom_xy, dtype=torch.float64).cpu()
-        single = submap_scores(self.map, ground.to(device="cpu"), centre, self.cfg)
+        single = submap_scores(self.map, ground.to(device="cpu"), centre, self.cfg, out=self._single)
         step = centre - self._previous_centre if self._previous_centre is not None else torch.zeros(2)
-        self._chain = chain_scores(self._chain, single, step, self.map, self.cfg)
+        chain = torch.empty_like(single) if self._chain is None else self._chain
+        self._chain = chain_scores(self._chain, single, step, self.map, self.cfg, out=chain)
         self._previous_centre = centre
         return patch_priors(self.map, self._chain, self.cfg)
