@@ -195,7 +195,7 @@ class GroundSubmap:
     T_odom_base: np.ndarray  # (4, 4) odometry pose of the base at `time`
     path_length_m: float  # odometry path length from the first frame to `time`
     primitives: PrimitiveSet  # odom x-y frame
-    frame_descriptors: torch.Tensor  # (F, Dg) L2-normalized global descriptors of frames, F >= 1 (0: not computed)
+    frame_descriptors: torch.Tensor  # (F, Dg) L2-normalized global descriptors of frames, F >= 1 ((0, Dg) or (0, 0): not computed)
     segment_ids: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.int64))  # (S,) 3D segments used
 
 

@@ -115,6 +115,8 @@ def test_frame_descriptors_are_computed_only_when_place_recognition_reads_them(w
                                                      f"matching.place_recognition.global_fusion={fusion}"])
         live = LiveLocalizer(aerial_map, cfg, reader.camera, resolve_runtime(cfg.runtime))
         assert live.mapper.frame_descriptors is wanted, (mode, fusion)
+        # and no global describer (no model, no weights) is built for descriptors nothing reads
+        assert (live.mapper.global_describer is not None) is wanted, (mode, fusion)
 
 
 def test_descriptors_of_another_global_back_end_than_the_map_are_refused(world) -> None:

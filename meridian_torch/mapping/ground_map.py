@@ -102,7 +102,8 @@ class GroundMapper:
     """Online ground mapping of one RGB-D sequence (frames must come in time order).
 
     `frame_descriptors=False` leaves the frames' global descriptors out: submaps then carry none
-    (0 rows), which only global place recognition would miss.
+    (0 rows), which only place recognition by global descriptors would miss, and no global
+    describer is needed (`global_describer` may be None).
     """
 
     def __init__(
@@ -112,12 +113,14 @@ class GroundMapper:
         camera: CameraModel,
         segmenter: Segmenter,
         describer: SegmentDescriber,
-        global_describer: GlobalDescriber,
+        global_describer: GlobalDescriber | None,
         runtime: Runtime,
         *,
         keep_geometries: bool = False,
         frame_descriptors: bool = True,
     ) -> None:
+        if frame_descriptors and global_describer is None:
+            raise ValueError("frame descriptors need a global describer")
         self.cfg = cfg
         self.primitives = primitives
         self.camera = camera
@@ -148,7 +151,8 @@ class GroundMapper:
         frame_descriptors: bool = True,
     ) -> "GroundMapper":
         # perception.ground_engine decides whether models run in torch or onnxruntime
-        segmenter, describer, global_describer = build_ground_perception(cfg.perception)
+        segmenter, describer, global_describer = build_ground_perception(cfg.perception,
+                                                                         global_descriptor=frame_descriptors)
         return cls(cfg.ground_map, cfg.primitives, camera, segmenter, describer, global_describer, runtime,
                    keep_geometries=keep_geometries, frame_descriptors=frame_descriptors)
 
@@ -316,7 +320,7 @@ class GroundMapper:
 
     def _frame_descriptors(self, segments: list[TrackedSegment], centre: _FrameRecord, times: np.ndarray) -> torch.Tensor:
         if not self.frame_descriptors:
-            return torch.zeros(0, self.global_describer.dim)
+            return torch.zeros(0, 0 if self.global_describer is None else self.global_describer.dim)
         first = np.array([s.first_seen for s in segments])
         last = np.array([s.last_seen for s in segments])
         t0, t1 = last.min(), first.max()

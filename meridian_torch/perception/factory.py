@@ -219,8 +219,11 @@ def _onnx_global_describer(p: PerceptionConfig) -> GlobalDescriber:
     return OnnxAnyLocGlobalDescriber(facet, head, resize_short_side_px=a.resize_short_side_px)
 
 
-def build_ground_perception(p: PerceptionConfig) -> tuple[Segmenter, SegmentDescriber, GlobalDescriber]:
-    """The ground pipeline's segmenter, segment describer and global describer.
+def build_ground_perception(
+    p: PerceptionConfig, *, global_descriptor: bool = True
+) -> tuple[Segmenter, SegmentDescriber, GlobalDescriber | None]:
+    """The ground pipeline's segmenter, segment describer and global describer (None with
+    `global_descriptor=False`: nothing will read frame descriptors, so no model is loaded for them).
 
     With `p.ground_engine == "onnx"` no torch model runs: neural describers run their exported
     graphs (`p.onnx`) in onnxruntime, FastSAM is an ONNX graph anyway, and the classical back
@@ -228,7 +231,7 @@ def build_ground_perception(p: PerceptionConfig) -> tuple[Segmenter, SegmentDesc
     """
     if p.ground_engine == "torch":
         return (build_segmenter(p.ground_segmenter), build_segment_describer(p.descriptor),
-                build_global_describer(p.global_descriptor))
+                build_global_describer(p.global_descriptor) if global_descriptor else None)
     from meridian_torch.errors import ConfigError
 
     # every back end must be named here: a new neural one must not silently run torch onboard
@@ -243,6 +246,8 @@ def build_ground_perception(p: PerceptionConfig) -> tuple[Segmenter, SegmentDesc
     segmenter = build_segmenter(p.ground_segmenter)
     describer = (_onnx_segment_describer(p) if p.descriptor.backend == "dinov2"
                  else build_segment_describer(p.descriptor))
+    if not global_descriptor:
+        return segmenter, describer, None
     global_describer = (build_global_describer(p.global_descriptor) if p.global_descriptor.backend == "classical"
                         else _onnx_global_describer(p))
     return segmenter, describer, global_describer
