@@ -174,8 +174,11 @@ class GroundMapper:
 
     def split_due(self, frames: Sequence[Frame]) -> tuple[list[Frame], list[Frame]]:
         """The next frames offered (`due`), split into those to map and those that only carry odometry."""
-        due = self.due([f.timestamp for f in frames])
-        return [f for f, d in zip(frames, due) if d], [f for f, d in zip(frames, due) if not d]
+        mapped: list[Frame] = []
+        skipped: list[Frame] = []
+        for frame, due in zip(frames, self.due([f.timestamp for f in frames])):
+            (mapped if due else skipped).append(frame)
+        return mapped, skipped
 
     def due(self, times: Sequence[float] | np.ndarray) -> np.ndarray:
         """(N,) bool: which of the next frames offered (their times, after every earlier call's) to

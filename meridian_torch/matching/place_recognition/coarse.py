@@ -351,21 +351,21 @@ def _slack_max(volume: torch.Tensor, k: int) -> torch.Tensor:
     """(yaws, H, W) max over the (2k + 1)^2 cells around each cell (those on the grid) and the
     neighbouring yaws (circular): max_pool2d's window and two rolls, as separable passes of
     torch.maximum on shifted views (exact, as any max; max_pool2d at stride 1 took ~20x longer)."""
-    cells = volume.clone()
-    for d in range(1, k + 1):  # along rows, then columns; each pass reads an unchanged copy
-        torch.maximum(cells[..., :-d], volume[..., d:], out=cells[..., :-d])
-        torch.maximum(cells[..., d:], volume[..., :-d], out=cells[..., d:])
-    rows = cells.clone()
+    along_x = volume.clone()
+    for d in range(1, k + 1):  # each pass reads a copy it does not write
+        torch.maximum(along_x[..., :-d], volume[..., d:], out=along_x[..., :-d])
+        torch.maximum(along_x[..., d:], volume[..., :-d], out=along_x[..., d:])
+    window = along_x.clone()
     for d in range(1, k + 1):
-        torch.maximum(rows[:, :-d], cells[:, d:], out=rows[:, :-d])
-        torch.maximum(rows[:, d:], cells[:, :-d], out=rows[:, d:])
-    if len(rows) == 1:
-        return rows
-    out = cells  # its contents are spent: the yaw pass writes into it
-    torch.maximum(rows[1:], rows[:-1], out=out[1:])
-    torch.maximum(rows[0], rows[-1], out=out[0])
-    torch.maximum(out[:-1], rows[1:], out=out[:-1])
-    torch.maximum(out[-1], rows[0], out=out[-1])
+        torch.maximum(window[:, :-d], along_x[:, d:], out=window[:, :-d])
+        torch.maximum(window[:, d:], along_x[:, :-d], out=window[:, d:])
+    if len(window) == 1:
+        return window
+    out = along_x  # spent: the yaw pass writes into it
+    torch.maximum(window[1:], window[:-1], out=out[1:])
+    torch.maximum(window[0], window[-1], out=out[0])
+    torch.maximum(out[:-1], window[1:], out=out[:-1])
+    torch.maximum(out[-1], window[0], out=out[-1])
     return out
 
 
@@ -393,7 +393,7 @@ def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig)
     best, best_yaw = volume[0].clone(), torch.zeros(volume.shape[1:], dtype=torch.int64)
     for y in range(1, len(volume)):
         better = volume[y] > best
-        best = torch.where(better, volume[y], best)
+        torch.where(better, volume[y], best, out=best)
         best_yaw.masked_fill_(better, y)
     best, best_yaw = best.reshape(-1), best_yaw.reshape(-1)
     on_map = cmap.cell_patch >= 0
