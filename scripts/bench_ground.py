@@ -7,7 +7,10 @@ the current one is tracked) and reports wall time split into stages (frame readi
 segmentation, segment descriptors, observations in the perception thread; tracking, submaps,
 global descriptors in the main thread, and how long it waited for perception), frames per
 second, the process CPU time (user) per frame, the real-time factor (sequence duration / wall
-time) and the peak resident memory. Per-frame numbers count the frames mapped (those due at
+time) and the peak resident memory. The frames' global descriptors are left out, as `localize`
+leaves them out unless place recognition reads them (`global` mode, or a coarse search fused
+with neural descriptors); `--frame-descriptors` computes them as such a run does (every
+`ground_map.frame_descriptor_dist_m` of travel). Per-frame numbers count the frames mapped (those due at
 `ground_map.mapping_rate_hz`; `--set ground_map.mapping_rate_hz=null` maps every frame). Stage
 times are the mapper's own `core.timing` stages (wall time; the two threads overlap, so they add
 up to more than the wall time); numbers depend on the machine's load, so say how loaded it was
@@ -67,7 +70,8 @@ def run_child(args: argparse.Namespace) -> dict:
     reader = SequenceReader(seq)
     n = len(reader) if args.frames is None else min(args.frames, len(reader))
 
-    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime))
+    mapper = GroundMapper.from_config(cfg, reader.camera, resolve_runtime(cfg.runtime),
+                                      frame_descriptors=args.frame_descriptors)
     load = list(os.getloadavg())
     cpu_before = resource.getrusage(resource.RUSAGE_SELF)
     started = time.perf_counter()
@@ -138,7 +142,8 @@ def _child_argv(args: argparse.Namespace, source: Path) -> list[str]:
             argv += [flag, str(value)]
     for item in args.overrides:
         argv += ["--set", item]
-    return argv + (["--stage-cpu"] if args.stage_cpu else []) + ["--child"]
+    return (argv + (["--stage-cpu"] if args.stage_cpu else []) + (["--frame-descriptors"] if args.frame_descriptors else [])
+            + ["--child"])
 
 
 def main() -> None:
@@ -149,6 +154,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--frames", type=int, default=None, help="only the first N frames")
     ap.add_argument("--stage-cpu", action="store_true", help="CPU time per stage (one thread per stage)")
+    ap.add_argument("--frame-descriptors", action="store_true",
+                    help="also compute the frames' global descriptors (as localize does only in global mode or a "
+                         "coarse search fused with neural descriptors)")
     ap.add_argument("--baseline-src", type=Path, default=None, help="also run the source tree DIR, alternating")
     ap.add_argument("--rounds", type=int, default=1, help="runs of each tree (alternated with --baseline-src)")
     ap.add_argument("--json", type=Path, default=None)
