@@ -27,6 +27,11 @@ its path), to show that memory and frames/s do not depend on how long it drives.
 `--torch-profile FILE` a torch.profiler Chrome trace.
 
 Timings are noisy on shared machines: the load average before each run is printed with it.
+`--rounds N` runs each tree N times, alternated with the order swapped every round, and adds the
+median and range of each tree's headline numbers and the ratio of the medians: on these 2-vCPU
+machines the same pair of trees measured 0.92 against 0.85 in one run and 0.82 against 0.87 in
+the next. A fresh worktree compiles its numba kernels in its first run (about a minute): run it
+once before comparing, or read the median of three or more rounds.
 
 Example:
     python scripts/bench_localize.py runs/kitti09-7hz -c configs/kitti09.yaml --threads 2
@@ -37,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -442,6 +448,33 @@ def report(results: list[tuple[str, dict]]) -> str:
     return "\n".join(lines)
 
 
+def summary(trees: list[tuple[str, list[dict]]]) -> str:
+    """Median and range over the rounds of each tree's headline numbers, and the ratio of the
+    medians against the first tree's."""
+    rows = [
+        ("real-time factor online", lambda r: r["rtf_online"], ".2f"),
+        ("wall time online, s", lambda r: r["online_s"], ".1f"),
+        ("process CPU online, s", lambda r: r.get("cpu_online_s"), ".1f"),
+        ("ground mapping, s", lambda r: r["pipeline_seconds"].get("ground_mapping"), ".1f"),
+        ("matching, s", lambda r: r["pipeline_seconds"].get("matching"), ".1f"),
+        ("peak RSS, MiB", lambda r: r["peak_rss_mib"], ".0f"),
+    ]
+    lines = [f"over {len(trees[0][1])} rounds: median (min-max) per tree, and its ratio to {trees[0][0]}'s median",
+             "| | " + " | ".join(label for label, _ in trees) + " |", "|---|" + "---|" * len(trees)]
+    for name, get, spec in rows:
+        values = [[v for v in (get(r) for r in runs) if v is not None] for _, runs in trees]
+        medians = [statistics.median(v) if v else None for v in values]
+        cells = []
+        for k, (v, median) in enumerate(zip(values, medians)):
+            if median is None:
+                cells.append("-")
+                continue
+            ratio = f", x{median / medians[0]:.3f}" if k and medians[0] else ""
+            cells.append(f"{median:{spec}} ({min(v):{spec}}-{max(v):{spec}}{ratio})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _child_argv(args: argparse.Namespace, source: Path, profile: bool) -> list[str]:
     """The child's command line: this measurement's options (profiles only for this tree; a
     shipped config as the tree's own copy)."""
@@ -473,6 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--passes", type=int, default=1, help="drive the sequence N times, forward and back (memory runs)")
     p.add_argument("--baseline-src", type=Path, default=None,
                    help="also run the source tree DIR (e.g. a worktree of an older commit) and compare")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="runs of each tree, alternated (the order swapped every round), with a summary of their "
+                        "medians: one pair can mislead on a shared machine (default 1)")
     p.add_argument("--profile", type=Path, default=None, help="write a cProfile of the run to FILE")
     p.add_argument("--torch-profile", type=Path, default=None, help="write a torch.profiler Chrome trace to FILE")
     p.add_argument("--json", type=Path, default=None, help="also write the results to FILE")
@@ -488,12 +524,18 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not (args.sequence / "ground").is_dir():
         raise SystemExit(f"bench_localize: {args.sequence} is not a sequence folder (no ground/)")
-    results = [("this tree", run_in_tree(__file__, _child_argv(args, REPO, profile=True), REPO, RESULT_TAG))]
-    if args.baseline_src is not None:
-        baseline = run_in_tree(__file__, _child_argv(args, args.baseline_src.resolve(), profile=False),
-                               args.baseline_src.resolve(), RESULT_TAG)
-        results.append(("baseline", baseline))
+    trees = [("this tree", REPO)] + ([("baseline", args.baseline_src.resolve())] if args.baseline_src else [])
+    results = []
+    for k in range(args.rounds):
+        # every other round starts with the other tree, so that neither always runs on a machine
+        # the other has just warmed (or loaded)
+        for label, source in (trees if k % 2 == 0 else trees[::-1]):
+            profile = source == REPO and k == 0  # profiles of this tree's first run only
+            result = run_in_tree(__file__, _child_argv(args, source, profile=profile), source, RESULT_TAG)
+            results.append((f"{label} #{k + 1}" if args.rounds > 1 else label, result))
     print(report(results))
+    if args.rounds > 1:
+        print(summary([(label, [r for name, r in results if name.startswith(label + " #")]) for label, _ in trees]))
     if args.json is not None:
         args.json.write_text(json.dumps(dict(results), indent=2, default=float) + "\n")
     return 0
