@@ -234,6 +234,37 @@ def test_perceiving_a_batch_ahead_gives_the_plain_loops_submaps(tiny: Path, subm
         assert torch.equal(a.frame_descriptors, b.frame_descriptors)
 
 
+def test_the_pipeline_runs_torch_single_threaded_and_restores_it(tiny: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """While `perceived_batches` runs, torch has one thread in the perceivers and in the caller
+    (the pipeline's own threads fill the cores); the caller's count comes back when the
+    generator ends and when it is closed early."""
+    from meridian_torch.mapping import ground_map
+
+    reader = SequenceReader(tiny)
+    mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+    perceive, in_perceivers = mapper.perceive, []
+
+    def counting(frames):
+        in_perceivers.append(torch.get_num_threads())
+        return perceive(frames)
+
+    monkeypatch.setattr(mapper, "perceive", counting)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        in_caller = [torch.get_num_threads() for _ in ground_map.perceived_batches(mapper, reader, len(reader))]
+        assert torch.get_num_threads() == 3
+        assert len(in_caller) >= 2 and set(in_caller) == {1} and set(in_perceivers) == {1}
+        fresh = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime))
+        batches = ground_map.perceived_batches(fresh, reader, len(reader))
+        next(batches)
+        assert torch.get_num_threads() == 1
+        batches.close()
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_a_frame_that_cannot_be_decoded_stops_the_pipeline_with_its_file(tiny: Path, tmp_path: Path) -> None:
     """The reader thread's error reaches the caller (not a hang, not a skipped frame) and names the file."""
     import shutil

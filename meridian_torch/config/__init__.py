@@ -66,7 +66,12 @@ class RuntimeConfig(StrictModel):
 
     device: str = Field(default="cpu", pattern=r"^(cpu|auto|cuda(:\d+)?)$")
     dtype: Literal["float32", "float64"] = "float32"
-    num_threads: int = Field(default=0, ge=0, description="torch CPU threads; 0 = torch's default")
+    num_threads: int = Field(
+        default=0, ge=0,
+        description="CPU threads: torch's, and our thread pools' (per-frame perception, matching's patch groups); "
+        "0 = torch's default (one per core). While the ground mapper's pipeline runs, torch itself runs "
+        "single-threaded and the pools keep this count",
+    )
     blas_threads: int = Field(
         default=1, ge=0,
         description="threads of NumPy's, SciPy's and OpenCV's BLAS; 0 = the library's default (one per core)",

@@ -38,6 +38,7 @@ import torch
 from meridian_torch.config import GroundMapConfig, MeridianConfig
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.config.perception import active_backend_dict
+from meridian_torch.core.parallel import pipelined_threads, share_cpu_threads
 from meridian_torch.core.timing import stage
 from meridian_torch.io.camera import CameraModel
 from meridian_torch.io.sequence import Frame, SequenceReader
@@ -349,7 +350,11 @@ def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Itera
     integrates batch k (the tracker and submaps are serial). Perception is stateless; a second
     batch in flight fills the cores at the seams between one batch's stages and while the caller
     waits. The batches and their contents are those of a plain loop over the frames due; every
-    thread records its stages into the caller's stage table."""
+    thread records its stages into the caller's stage table.
+
+    From the first batch asked for until the generator ends or is closed, torch runs
+    single-threaded in every thread, the caller's included (`core.parallel.pipelined_threads`):
+    the pipeline's own threads fill the cores."""
     mapped = np.flatnonzero(mapper.due(reader.frame_times[:n_frames]))  # the others are never decoded
     starts = list(range(0, len(mapped), mapper.cfg.batch_size))
     perceivers = mapper.cfg.perception_threads
@@ -359,9 +364,10 @@ def perceived_batches(mapper: GroundMapper, reader: Any, n_frames: int) -> Itera
             return [reader[int(i)] for i in mapped[start : start + mapper.cfg.batch_size]]
 
     def perceive(frames: Future[list[Frame]]) -> PerceivedFrames:
+        share_cpu_threads(perceivers)  # the perceivers' per-frame threads share the cores
         return mapper.perceive(frames.result())
 
-    with ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
+    with pipelined_threads(), ThreadPoolExecutor(1, thread_name_prefix="meridian-read") as read_pool, \
             ThreadPoolExecutor(perceivers, thread_name_prefix="meridian-perceive") as perceive_pool:
         reads: dict[int, Future[list[Frame]]] = {}  # batch -> its frames being decoded
         perceiving: dict[int, Future[PerceivedFrames]] = {}

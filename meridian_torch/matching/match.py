@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import MatchConfig
-from meridian_torch.core.parallel import thread_map
+from meridian_torch.core.parallel import cpu_threads, thread_map
 from meridian_torch.core.timing import stage
 from meridian_torch.matching.affinity import affinity, affinity_entries
 from meridian_torch.matching.associations import Associations, putative_associations
@@ -158,7 +158,7 @@ def match_submap(
     # every core, not only the Langevin loop (the rest are one-thread kernels and small ops).
     # The groups are the same for any thread count, and so are the results (a lone group runs on
     # the caller's threads, as every match did before).
-    threads = torch.get_num_threads() if device.type == "cpu" else 1
+    threads = cpu_threads() if device.type == "cpu" else 1
     parts = thread_map(
         lambda group: _group_hypotheses(ground, aerial, assoc, prior, seeds, group, cfg),
         groups,

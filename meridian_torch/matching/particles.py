@@ -59,7 +59,7 @@ import torch
 from torch import Tensor
 
 from meridian_torch.config.matching import ParticleConfig
-from meridian_torch.core.parallel import thread_map
+from meridian_torch.core.parallel import cpu_threads, thread_map
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.kernels import block_rows, langevin_patches, merge_sets, round_particles
 from meridian_torch.matching.particle_noise import (
@@ -222,7 +222,7 @@ def _compiled_dynamics(
         langevin_patches(patches.numpy(), *arrays, cfg.noise, cfg.rmsprop, cfg.early_stop, cfg.check_interval,
                          cfg.obj_tol, cfg.patience)
 
-    threads = max(1, min(torch.get_num_threads(), n_patches))
+    threads = max(1, min(cpu_threads(), n_patches))
     thread_map(run, [torch.arange(k, n_patches, threads) for k in range(threads)])
     return x, iterations
 
