@@ -29,8 +29,8 @@ its path), to show that memory and frames/s do not depend on how long it drives.
 Timings are noisy on shared machines: the load average before each run is printed with it.
 `--rounds N` runs each tree N times, alternated with the order swapped every round, and adds the
 median and range of each tree's headline numbers and the ratio of the medians: on these 2-vCPU
-machines the same pair of trees measured 0.92 against 0.85 in one run and 0.82 against 0.87 in
-the next. A fresh worktree compiles its numba kernels in its first run (about a minute): run it
+machines one pair of trees measured 0.92 against 0.85 in one run and 0.82 against 0.87 in the
+next, and a tree against itself 0.90 against 0.84 (medians of 2 rounds). A fresh worktree compiles its numba kernels in its first run (about a minute): run it
 once before comparing, or read the median of three or more rounds.
 
 Example:
@@ -519,6 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
+    if args.rounds < 1:
+        raise SystemExit(f"bench_localize: --rounds must be at least 1, got {args.rounds}")
     if args.child:
         print(RESULT_TAG + json.dumps(run_child(args), default=float), flush=True)
         return 0

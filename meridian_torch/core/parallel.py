@@ -45,8 +45,8 @@ def pipelined_threads() -> Iterator[None]:
     pipeline: reader, perceivers, the caller tracking and matching): torch's intra-op threads
     are set to 1 in every thread, while the pools (`thread_map`, the matcher's patch groups) keep
     `cpu_threads()`. With torch's threads on top of them (2 perceivers and the caller, each with
-    a 2-thread OpenMP team, on 2 cores), KITTI 09's ground mapping took 16 % longer and the run
-    peaked ~200 MiB higher (README, stop 43). Results do not depend on thread counts. Not
+    a 2-thread OpenMP team, on 2 cores), KITTI 09's ground mapping took 9-16 % longer and the
+    run peaked 140-210 MiB higher (README, stop 43). Results do not depend on thread counts. Not
     reentrant across threads: one pipelined stretch at a time (torch's thread count is
     process-wide)."""
     previous_pool, previous_torch = _pool_threads.get(), torch.get_num_threads()
