@@ -10,11 +10,11 @@ second, the process CPU time (user) per frame, the real-time factor (sequence du
 time) and the peak resident memory. The frames' global descriptors are left out, as `localize`
 leaves them out unless place recognition reads them (`global` mode, or a coarse search fused
 with neural descriptors); `--frame-descriptors` computes them as such a run does (every
-`ground_map.frame_descriptor_dist_m` of travel). Per-frame numbers count the frames mapped (those due at
-`ground_map.mapping_rate_hz`; `--set ground_map.mapping_rate_hz=null` maps every frame). Stage
-times are the mapper's own `core.timing` stages (wall time; the two threads overlap, so they add
-up to more than the wall time); numbers depend on the machine's load, so say how loaded it was
-when quoting them.
+`ground_map.frame_descriptor_dist_m` of travel). Per-frame numbers count the frames mapped
+(those due at `ground_map.mapping_rate_hz`; `--set ground_map.mapping_rate_hz=null` maps every
+frame). Stage times are the mapper's own `core.timing` stages (wall time; the two threads
+overlap, so they add up to more than the wall time); numbers depend on the machine's load, so say
+how loaded it was when quoting them.
 
 `--stage-cpu` measures CPU instead of wall time per stage: every stage runs in one thread (torch
 and the per-frame thread pools at 1 thread; the perception thread still runs ahead) and the stage
@@ -142,8 +142,8 @@ def _child_argv(args: argparse.Namespace, source: Path) -> list[str]:
             argv += [flag, str(value)]
     for item in args.overrides:
         argv += ["--set", item]
-    return (argv + (["--stage-cpu"] if args.stage_cpu else []) + (["--frame-descriptors"] if args.frame_descriptors else [])
-            + ["--child"])
+    flags = [flag for flag, on in (("--stage-cpu", args.stage_cpu), ("--frame-descriptors", args.frame_descriptors)) if on]
+    return argv + flags + ["--child"]
 
 
 def main() -> None:

@@ -30,8 +30,9 @@ Timings are noisy on shared machines: the load average before each run is printe
 `--rounds N` runs each tree N times, alternated with the order swapped every round, and adds the
 median and range of each tree's headline numbers and the ratio of the medians: on these 2-vCPU
 machines one pair of trees measured 0.92 against 0.85 in one run and 0.82 against 0.87 in the
-next, and a tree against itself 0.90 against 0.84 (medians of 2 rounds). A fresh worktree compiles its numba kernels in its first run (about a minute): run it
-once before comparing, or read the median of three or more rounds.
+next, and a tree against itself 0.90 against 0.84 (medians of 2 rounds). A fresh worktree
+compiles its numba kernels in its first run (about a minute): run it once before comparing, or
+read the median of three or more rounds.
 
 Example:
     python scripts/bench_localize.py runs/kitti09-7hz -c configs/kitti09.yaml --threads 2
@@ -528,16 +529,18 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"bench_localize: {args.sequence} is not a sequence folder (no ground/)")
     trees = [("this tree", REPO)] + ([("baseline", args.baseline_src.resolve())] if args.baseline_src else [])
     results = []
+    per_tree: dict[str, list[dict]] = {label: [] for label, _ in trees}
     for k in range(args.rounds):
         # every other round starts with the other tree, so that neither always runs on a machine
         # the other has just warmed (or loaded)
         for label, source in (trees if k % 2 == 0 else trees[::-1]):
-            profile = source == REPO and k == 0  # profiles of this tree's first run only
+            profile = label == "this tree" and k == 0  # profiles of this tree's first run only
             result = run_in_tree(__file__, _child_argv(args, source, profile=profile), source, RESULT_TAG)
             results.append((f"{label} #{k + 1}" if args.rounds > 1 else label, result))
+            per_tree[label].append(result)
     print(report(results))
     if args.rounds > 1:
-        print(summary([(label, [r for name, r in results if name.startswith(label + " #")]) for label, _ in trees]))
+        print(summary(list(per_tree.items())))
     if args.json is not None:
         args.json.write_text(json.dumps(dict(results), indent=2, default=float) + "\n")
     return 0

@@ -67,8 +67,8 @@ def thread_map(
 
     Each item runs in a copy of the caller's context, so the stages it marks land in the
     caller's `record_stages` table (summed over the threads). `torch_threads_each` caps torch's
-    intra-op threads inside each worker (torch's setting is per thread: the caller keeps its
-    own), so that items that each call torch do not oversubscribe the cores."""
+    intra-op threads inside each worker, so that items that each call torch do not oversubscribe
+    the cores (the caller keeps its own count; threads started later begin with the cap)."""
     items = list(items)
     workers = min(threads or cpu_threads(), len(items))
     if workers <= 1:
