@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
 import resource
 import sys
@@ -12,7 +14,7 @@ import torch
 from meridian_torch.config import RuntimeConfig
 from meridian_torch.errors import ConfigError
 
-__all__ = ["Runtime", "resolve_runtime", "set_blas_threads", "peak_rss_mib", "current_rss_mib"]
+__all__ = ["Runtime", "resolve_runtime", "set_blas_threads", "peak_rss_mib", "current_rss_mib", "release_free_memory"]
 
 
 @dataclass(frozen=True)
@@ -62,3 +64,23 @@ def current_rss_mib() -> float:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     except OSError:
         return peak_rss_mib()
+
+
+@functools.cache
+def _malloc_trim():
+    try:
+        return getattr(ctypes.CDLL(None), "malloc_trim", None)  # glibc only
+    except OSError:
+        return None
+
+
+def release_free_memory() -> bool:
+    """Hand the free pages of the C heap back to the OS (glibc's `malloc_trim`); False where there
+    is no such call or nothing was released.
+
+    glibc serves arrays up to 32 MiB from its heaps once a block that large was freed (its mmap
+    threshold rises), and pages freed between blocks still in use stay resident. Over a long
+    drive that grew resident memory by about 95 MiB per 1.7 km while what the localizer holds
+    stayed flat, so the localizer calls this once per submap (measured: about 25 ms a call)."""
+    trim = _malloc_trim()
+    return bool(trim(0)) if trim is not None else False

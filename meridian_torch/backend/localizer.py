@@ -64,6 +64,7 @@ from meridian_torch.geometry.planar import wrap_angle, yaw_of
 from meridian_torch.geometry.trajectory import Trajectory
 from meridian_torch.matching.match import match_submap
 from meridian_torch.matching.place_recognition import reads_global_descriptors
+from meridian_torch.runtime import release_free_memory
 from meridian_torch.types import AerialMap, GroundSubmap
 
 __all__ = ["Localizer", "localize_offline"]
@@ -204,9 +205,11 @@ class Localizer:
         T_world_odom = T_world_base @ np.linalg.inv(self._odom_se2[nodes])
         priors = yaw_of(T_world_odom)
         patches = self._matching.near_patches(T_world_base[:, :2, 2])
-        return LoopClosureCandidates.concat(
-            [self._matching.match(s, p, float(r)) for s, p, r in zip(submaps, patches, priors)]
-        )
+        matched = []
+        for submap, submap_patches, prior in zip(submaps, patches, priors):
+            matched.append(self._matching.match(submap, submap_patches, float(prior)))
+            release_free_memory()  # see the end of add_submap
+        return LoopClosureCandidates.concat(matched)
 
     # ------------------------------------------------------------------ solving
     def _inliers(self, candidates: LoopClosureCandidates) -> InlierSelection:
@@ -453,6 +456,8 @@ class Localizer:
             fix_revoked=revoked,
         )
         self.events.append(event)
+        # matching's scratch arrays, freed between blocks that live on, would stay resident
+        release_free_memory()
         return event
 
     def _update_of_frames(self) -> np.ndarray:
