@@ -7,7 +7,7 @@ then the final offline pass) on one sequence folder and prints:
   as they come) and in total (with the final pass);
 - the process's CPU time (user + system, all threads) while online, and how many cores that kept
   busy on average: near the machine's core count, only less work can make the run faster;
-- the peak resident memory of the process, and which stages raised it;
+- the peak resident memory of the process, online and with the final pass, and which stages raised it;
 - seconds per stage and sub-stage (perception, 3D observations, tracking, submaps, place
   recognition, associations, affinity, particles, registration, verification, consistency,
   pose graph, ...), as recorded by `meridian_torch.core.timing`; stages that run in threads
@@ -178,11 +178,13 @@ def run_child(args: argparse.Namespace) -> dict:
     stage_times = None
     online_end: list[float] = []
     online_cpu: list[float] = []
+    online_peak: list[float] = []
     started, cpu_started = time.perf_counter(), time.process_time()
 
     def on_stage(name: str) -> None:
         online_end.append(time.perf_counter())
         online_cpu.append(time.process_time())
+        online_peak.append(peak_rss_mib())
         source.mark(len(source))  # a last pass whose final frames were not mapped (never read)
 
     def go():
@@ -230,6 +232,7 @@ def run_child(args: argparse.Namespace) -> dict:
         "cpu_online_s": cpu_online,
         "cpus": os.cpu_count(),
         "peak_rss_mib": peak_rss_mib(),
+        "peak_rss_online_mib": online_peak[0] if online_peak else None,
         "rss_before_mib": rss_before,
         "load_average": load,
         "threads": torch.get_num_threads(),
@@ -406,7 +409,8 @@ def report(results: list[tuple[str, dict]]) -> str:
         ("real-time factor online / total", lambda r: f"{r['rtf_online']:.2f} / {r['rtf_total']:.2f}"),
         ("process CPU online (cores busy on average)", lambda r: "-" if "cpu_online_s" not in r else
             f"{r['cpu_online_s']:.1f} s ({r['cpu_online_s'] / r['online_s']:.2f} of {r['cpus']})"),
-        ("peak RSS", lambda r: fmt(r["peak_rss_mib"], ".0f", " MiB")),
+        ("peak RSS online / total", lambda r: f"{fmt(r.get('peak_rss_online_mib'), '.0f')} / "
+                                              f"{fmt(r['peak_rss_mib'], '.0f', ' MiB')}"),
         ("localized (fix at submap)", lambda r: f"{'yes' if r['localized'] else 'no'} ({r['fix_submap']})"),
         ("ATE incremental / final", lambda r: "-" if not r["metrics"] else
             f"{fmt(r['metrics']['ate_incremental_m'])} / {fmt(r['metrics']['ate_final_m'])} m"),
@@ -458,6 +462,7 @@ def summary(trees: list[tuple[str, list[dict]]]) -> str:
         ("process CPU online, s", lambda r: r.get("cpu_online_s"), ".1f"),
         ("ground mapping, s", lambda r: r["pipeline_seconds"].get("ground_mapping"), ".1f"),
         ("matching, s", lambda r: r["pipeline_seconds"].get("matching"), ".1f"),
+        ("peak RSS online, MiB", lambda r: r.get("peak_rss_online_mib"), ".0f"),
         ("peak RSS, MiB", lambda r: r["peak_rss_mib"], ".0f"),
     ]
     lines = [f"over {len(trees[0][1])} rounds: median (min-max) per tree, and its ratio to {trees[0][0]}'s median",
