@@ -68,9 +68,10 @@ def current_rss_mib() -> float:
 
 @functools.cache
 def _malloc_trim():
+    """glibc's `int malloc_trim(size_t pad)`, or None (other C libraries, other systems)."""
     try:
-        return getattr(ctypes.CDLL(None), "malloc_trim", None)  # glibc only
-    except OSError:
+        return getattr(ctypes.CDLL(None), "malloc_trim", None)
+    except (OSError, TypeError):  # TypeError: Windows has no process-wide handle for None
         return None
 
 
