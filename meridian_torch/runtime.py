@@ -83,7 +83,7 @@ def release_free_memory() -> bool:
     threshold rises), and pages freed between blocks still in use stay resident. Over a long
     drive that grew resident memory by about 95 MiB per 1.7 km while what the localizer holds
     stayed flat, so the localizer calls this after every submap it adds or re-matches (about
-    25 ms a call). A fixed mmap threshold (mallopt) would avoid the heap for large arrays but
-    page-faults every fresh one, which stop 42 measured as half of the coarse search's CPU."""
+    25 ms a call). A fixed mmap threshold (mallopt) would keep large arrays off the heap but
+    page-fault every fresh one; not measured."""
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
