@@ -51,8 +51,21 @@ def test_localize_refuses_a_folder_with_files_and_leaves_it_untouched(tmp_path: 
     assert [p.name for p in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "mine"
 
 
-def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: Path,
-                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def _interrupt() -> None:
+    raise KeyboardInterrupt
+
+
+def _interrupt_inside_an_extension() -> None:
+    """What CPython makes of a SIGTERM/Ctrl-C that lands while numba's dispatcher runs Python code."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as exc:
+        raise SystemError("CPUDispatcher(<function f>) returned a result with an exception set") from exc
+
+
+@pytest.mark.parametrize("interrupt", [_interrupt, _interrupt_inside_an_extension])
+def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                       interrupt) -> None:
     from meridian_torch.cli import runs
     from meridian_torch.pipeline import prepare
 
@@ -64,13 +77,30 @@ def test_a_failed_or_interrupted_localize_leaves_the_folder_as_it_was(tmp_path: 
     assert failed.exit_code == 1 and "seq" in failed.output
     assert sorted(p.name for p in out.iterdir()) == ["trajectory.tum"], "a failed run touched the folder"
 
-    def interrupt(*args, **kwargs):
-        raise KeyboardInterrupt
-
     monkeypatch.setattr(prepare, "open_sequence", lambda cfg, sequence: (None, None))  # a sequence that checks out
-    monkeypatch.setattr(runs, "_load_or_build_map", interrupt)
+    monkeypatch.setattr(runs, "_load_or_build_map", lambda *args, **kwargs: interrupt())
     interrupted = CliRunner().invoke(app, args)
     assert interrupted.exit_code == 130 and "interrupted: nothing was written" in interrupted.output
+    assert "Traceback" not in interrupted.output and "SystemError" not in interrupted.output
     assert sorted(p.name for p in out.iterdir()) == ["trajectory.tum"]
     assert (out / "trajectory.tum").read_text() == "# an earlier run\n"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".results")], "no temporary folder left"
+
+
+def test_a_bug_is_not_mistaken_for_an_interrupt(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An extension's SystemError that no interrupt caused is a bug: it keeps its traceback."""
+    from meridian_torch.cli import runs
+    from meridian_torch.pipeline import prepare
+
+    def bug(*args, **kwargs):
+        try:
+            raise ValueError("inside the extension")
+        except ValueError as exc:
+            raise SystemError("returned a result with an exception set") from exc
+
+    monkeypatch.setattr(prepare, "open_sequence", lambda cfg, sequence: (None, None))
+    monkeypatch.setattr(runs, "_load_or_build_map", bug)
+    result = CliRunner().invoke(app, ["localize", str(tmp_path / "seq"), "--map", str(tmp_path / "m.mtm"),
+                                      "--out", str(tmp_path / "out")])
+    assert result.exit_code == 1 and isinstance(result.exception, SystemError), result.output
+    assert "interrupted" not in result.output

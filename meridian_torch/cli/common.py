@@ -54,27 +54,45 @@ def _terminate_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _wraps_interrupt(exc: BaseException) -> bool:
+    """An interrupt that a compiled extension turned into another error: the signal handler raised
+    KeyboardInterrupt while, e.g., numba's dispatcher ran Python code, and CPython reports a
+    SystemError ("returned a result with an exception set") caused by the interrupt."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or (None if cause.__suppress_context__ else cause.__context__)
+    return False
+
+
 def error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
     """MeridianError and the user's OS errors (permission, disk full, file in the way) -> one line on
-    stderr and exit code 1; Ctrl-C -> a line and exit code 130; anything else keeps its traceback."""
+    stderr and exit code 1; Ctrl-C (also when an extension wrapped it) -> a line and exit code 130;
+    anything else keeps its traceback."""
 
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             with _terminate_as_interrupt():
                 return command(*args, **kwargs)
-        except MeridianError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(1) from None
-        except OSError as exc:
-            if exc.errno not in _USER_OS_ERRORS:
-                raise
-            where = f"{exc.filename}: " if exc.filename else ""
-            typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
-            raise typer.Exit(1) from None
         except KeyboardInterrupt:
             typer.echo("interrupted", err=True)
             raise typer.Exit(130) from None
+        except Exception as exc:
+            if _wraps_interrupt(exc):
+                typer.echo("interrupted", err=True)
+                raise typer.Exit(130) from None
+            if isinstance(exc, MeridianError):
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(1) from None
+            if isinstance(exc, OSError) and exc.errno in _USER_OS_ERRORS:
+                where = f"{exc.filename}: " if exc.filename else ""
+                typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
+                raise typer.Exit(1) from None
+            raise
 
     return wrapper
 
@@ -106,6 +124,8 @@ def interruptible(out: Path) -> Iterator[None]:
     folder that only replaces `out` when complete) and exit 130."""
     try:
         yield
-    except KeyboardInterrupt:
+    except BaseException as exc:
+        if not _wraps_interrupt(exc):
+            raise
         typer.echo(f"interrupted: nothing was written, {out} is as it was", err=True)
         raise typer.Exit(130) from None
