@@ -18,6 +18,7 @@ from meridian_torch.backend.consistency import (
     consistency_scores,
     pair_errors,
     select_inliers,
+    select_inliers_in_windows,
     sparse_affinity,
 )
 from meridian_torch.backend.consistency_kernels import ball_heading_pairs
@@ -197,6 +198,40 @@ def test_clipper_rejects_the_corrupted_and_wrong_closures() -> None:
     # Chunked solving (forced with tiny chunks) finds the same set.
     chunked = select_inliers(c, BackendConfig(max_clipper_candidates=10), torch.Generator().manual_seed(0))
     assert torch.equal(chunked.inliers, expected)
+
+
+def test_windowed_selection_is_select_inliers_up_to_the_limit_and_bounded_beyond(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    c = _pool(3)
+    whole = select_inliers(c, CFG, torch.Generator().manual_seed(0))
+    same = select_inliers_in_windows(c, CFG, torch.Generator().manual_seed(0))
+    assert torch.equal(same.inliers, whole.inliers) and same.score == whole.score
+    assert all(torch.equal(a, b) for a, b in zip(same.edges, whole.edges))
+
+    # Beyond the limit: shuffled input, windows of whole consecutive submaps, each graph bounded.
+    shuffled = c.select(torch.randperm(len(c), generator=torch.Generator().manual_seed(1)))
+    solved: list[LoopClosureCandidates] = []
+    real = consistency.select_inliers
+
+    def recording(candidates, *args, **kwargs):
+        solved.append(candidates)
+        return real(candidates, *args, **kwargs)
+
+    monkeypatch.setattr(consistency, "select_inliers", recording)
+    limit = 10
+    windowed = select_inliers_in_windows(shuffled, BackendConfig(max_clipper_candidates=limit),
+                                         torch.Generator().manual_seed(0))
+    *windows, pooled = solved
+    assert len(windows) == len(c) // limit + 1
+    spans = [sorted(set(w.submap_index.tolist())) for w in windows]
+    assert sorted(s for span in spans for s in span) == list(range(12)), "each submap in exactly one window"
+    assert all(span == list(range(span[0], span[-1] + 1)) for span in spans), "windows of consecutive submaps"
+    assert all(len(w) <= limit + 4 for w in windows)  # the limit, plus at most one submap's candidates
+    assert len(pooled) <= 12 and windowed.edges is None
+    expected = torch.zeros(len(c), dtype=torch.bool)
+    expected[[4 * i for i in range(12) if i != 5]] = True
+    assert torch.equal(windowed.inliers, expected[torch.randperm(len(c), generator=torch.Generator().manual_seed(1))])
 
 
 def test_candidates_from_hypotheses() -> None:

@@ -46,7 +46,12 @@ import numpy as np
 import torch
 
 from meridian_torch.backend.candidates import LoopClosureCandidates
-from meridian_torch.backend.consistency import Edges, InlierSelection, select_inliers
+from meridian_torch.backend.consistency import (
+    Edges,
+    InlierSelection,
+    select_inliers,
+    select_inliers_in_windows,
+)
 from meridian_torch.backend.frames import FrameBuffer, OnlineUpdate, lift_se2
 from meridian_torch.backend.pose_graph import (
     IncrementalPoseGraph,
@@ -212,10 +217,11 @@ class Localizer:
         return LoopClosureCandidates.concat(matched)
 
     # ------------------------------------------------------------------ solving
-    def _inliers(self, candidates: LoopClosureCandidates) -> InlierSelection:
+    def _inliers(self, candidates: LoopClosureCandidates, *, in_windows: bool = False) -> InlierSelection:
         start = time.perf_counter()
+        select = select_inliers_in_windows if in_windows else select_inliers
         with stage("consistency"):
-            sel = select_inliers(candidates, self.cfg.backend, self._clipper_generator)
+            sel = select(candidates, self.cfg.backend, self._clipper_generator)
         self._timer.add("consistency", start)
         return sel
 
@@ -533,7 +539,7 @@ class Localizer:
                 if progress:
                     progress(f"final pass: re-matching {n_sub} submaps with the rotation prior")
                 fresh = self._rematch(sol.T_world_base, self.submaps)
-                sel2 = self._inliers(fresh)
+                sel2 = self._inliers(fresh, in_windows=True)  # its graph is nearly complete: bounded
                 if self._gate(sel2.count, n_sub):
                     inliers2 = fresh.select(sel2.inliers)
                     best = (self._optimize(inliers2, n), inliers2)

@@ -44,7 +44,9 @@ class BackendConfig(StrictModel):
         ge=2,
         description="CLIPPER problems (candidates left after pruning those that cannot join the densest "
         "clique) larger than this are solved in even chunks, then once more on the pooled chunk inliers "
-        "(reference 100000 before pruning; a dense float64 4000^2 matrix is 128 MB)",
+        "(reference 100000 before pruning; a dense float64 4000^2 matrix is 128 MB); the final pass cuts a "
+        "larger candidate set into windows of consecutive submaps before building any graph (its graph is "
+        "nearly complete), so its memory does not grow with the drive",
     )
     clipper: ClipperConfig = Field(
         default_factory=lambda: ClipperConfig(rounding="support"),
