@@ -104,3 +104,20 @@ def test_a_bug_is_not_mistaken_for_an_interrupt(tmp_path: Path, monkeypatch: pyt
                                       "--out", str(tmp_path / "out")])
     assert result.exit_code == 1 and isinstance(result.exception, SystemError), result.output
     assert "interrupted" not in result.output
+
+
+def test_an_explicit_exit_while_handling_an_interrupt_keeps_its_code() -> None:
+    import typer
+
+    from meridian_torch.cli.common import error_boundary
+
+    @error_boundary
+    def command() -> None:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise typer.Exit(1)  # noqa: B904 (the command's own decision, with the interrupt as context)
+
+    with pytest.raises(typer.Exit) as stopped:
+        command()
+    assert stopped.value.exit_code == 1

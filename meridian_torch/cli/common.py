@@ -57,7 +57,10 @@ def _terminate_as_interrupt() -> Iterator[None]:
 def _wraps_interrupt(exc: BaseException) -> bool:
     """An interrupt that a compiled extension turned into another error: the signal handler raised
     KeyboardInterrupt while, e.g., numba's dispatcher ran Python code, and CPython reports a
-    SystemError ("returned a result with an exception set") caused by the interrupt."""
+    SystemError ("returned a result with an exception set") caused by the interrupt. An explicit
+    exit is the command's own decision, whatever it was handling."""
+    if isinstance(exc, typer.Exit):
+        return False
     seen: set[int] = set()
     cause: BaseException | None = exc
     while cause is not None and id(cause) not in seen:
