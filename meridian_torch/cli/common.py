@@ -57,9 +57,9 @@ def _terminate_as_interrupt() -> Iterator[None]:
 def _wraps_interrupt(exc: BaseException) -> bool:
     """An interrupt that a compiled extension turned into another error: the signal handler raised
     KeyboardInterrupt while, e.g., numba's dispatcher ran Python code, and CPython reports a
-    SystemError ("returned a result with an exception set") caused by the interrupt. An explicit
-    exit is the command's own decision, whatever it was handling."""
-    if isinstance(exc, typer.Exit):
+    SystemError ("returned a result with an exception set") caused by the interrupt. Ctrl-C itself
+    counts too. An explicit exit is the command's own decision, whatever it was handling."""
+    if isinstance(exc, (typer.Exit, SystemExit)):
         return False
     seen: set[int] = set()
     cause: BaseException | None = exc
@@ -81,10 +81,7 @@ def error_boundary(command: Callable[..., Any]) -> Callable[..., Any]:
         try:
             with _terminate_as_interrupt():
                 return command(*args, **kwargs)
-        except KeyboardInterrupt:
-            typer.echo("interrupted", err=True)
-            raise typer.Exit(130) from None
-        except Exception as exc:
+        except BaseException as exc:
             if _wraps_interrupt(exc):
                 typer.echo("interrupted", err=True)
                 raise typer.Exit(130) from None
