@@ -105,7 +105,8 @@ def test_distorted_cameras_are_undistorted_without_inventing_depth(tum_tree, tmp
     assert len(invented) == 0  # nearest-neighbour remap: every depth value was measured
 
 
-def test_cli_writes_a_sequence_and_refuses_to_overwrite(tum_tree, tmp_path: Path) -> None:
+def test_cli_writes_a_sequence_and_refuses_to_overwrite(tum_tree, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     seq, tum = tum_tree
     runner = CliRunner()
     args = ["convert", "tum-rgbd", str(tum), "--ortho", str(seq / "aerial"), "--out", str(tmp_path / "o"),
@@ -113,8 +114,12 @@ def test_cli_writes_a_sequence_and_refuses_to_overwrite(tum_tree, tmp_path: Path
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "skipped 0 colour images" in result.output
+    def must_not_read(*_args: object) -> None:
+        raise AssertionError("the orthophoto was read before the existing output was refused")
+
+    monkeypatch.setattr("meridian_torch.io.converters.tum_rgbd.read_orthophoto", must_not_read)
     again = runner.invoke(app, args)
-    assert again.exit_code == 1 and "already exists" in again.output
+    assert again.exit_code == 1 and "already exists" in again.output, again.output
 
 
 @pytest.mark.parametrize("case", ["no depth list", "nothing within max dt", "missing image", "unknown camera"])

@@ -95,10 +95,15 @@ def test_same_seed_gives_identical_files(tmp_path: Path) -> None:
     assert _digest(tmp_path / "a") != _digest(tmp_path / "c")
 
 
-def test_existing_output_is_not_overwritten(tiny_sequence: Path) -> None:
+def test_existing_output_is_refused_before_rendering(tiny_sequence: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def must_not_build(*_args: object) -> None:
+        raise AssertionError("the world was built before the existing output was refused")
+
+    monkeypatch.setattr("meridian_torch.sim.simulate.build_world", must_not_build)
     before = _digest(tiny_sequence)
     result = CliRunner().invoke(app, ["simulate", "--out", str(tiny_sequence), "-c", str(TINY)])
-    assert result.exit_code == 1
+    assert result.exit_code == 1, result.output
+    assert "already exists" in result.output
     assert str(tiny_sequence) in result.output
     assert _digest(tiny_sequence) == before
 

@@ -69,6 +69,7 @@ def simulate_sequence(
 
     `progress(done, total)` is called after every rendered batch of frames.
     """
+    SequenceWriter.check_target(out, overwrite)
     seeds = _stage_seeds(cfg.seed)
     world = build_world(cfg)
     ortho = render_orthophoto(world, cfg.ortho, seeds["ortho"])

@@ -112,6 +112,7 @@ def convert_kitti(
     if len(images) != len(times):
         raise KittiError(f"{source / 'image_2'}: {len(images)} images for {len(times)} lines of {times_path}")
     poses = read_kitti_poses(odometry, len(times))
+    SequenceWriter.check_target(out, overwrite)
     aerial = read_orthophoto(ortho)
 
     K = P2[:, :3]

@@ -154,6 +154,7 @@ def convert_rosbag(
     for bag in bags:
         if not bag.exists():
             raise RosbagError(f"{bag}: not found")
+    SequenceWriter.check_target(out, overwrite)
     aerial = read_orthophoto(ortho)
     try:
         reader = AnyReader([Path(b) for b in bags])

@@ -115,6 +115,7 @@ def convert_tum_rgbd(
     if not trajectory.is_file():
         raise TumRgbdError(f"{trajectory}: not found (give the camera poses with --trajectory)")
     T_odom_camera = read_tum(trajectory)
+    SequenceWriter.check_target(out, overwrite)
     aerial = read_orthophoto(ortho)
 
     pair = associate(rgb_times, depth_times, max_dt_s)

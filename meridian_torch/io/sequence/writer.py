@@ -40,8 +40,7 @@ class SequenceWriter:
         self._path = Path(path)
         self._camera_json = validated_camera_dict(camera)
         self._camera = camera
-        if self._path.exists() and not overwrite:
-            raise SequenceFormatError(f"{self._path}: already exists (pass overwrite=True to replace it)")
+        self.check_target(self._path, overwrite)
         self._stack = ExitStack()
         self._tmp = self._stack.enter_context(atomic_directory(self._path, overwrite=overwrite))
         for sub in ("ground/rgb", "ground/depth", "aerial"):
@@ -52,6 +51,13 @@ class SequenceWriter:
         self._ortho: Orthophoto | None = None
         self._meta: dict[str, Any] | None = None
         self._closed = False
+
+    @staticmethod
+    def check_target(path: PathLike, overwrite: bool) -> None:
+        """Refuse an existing `path` unless `overwrite`: callers check before rendering or
+        converting, so that the refusal does not come after the work."""
+        if Path(path).exists() and not overwrite:
+            raise SequenceFormatError(f"{path}: already exists (pass overwrite=True to replace it)")
 
     @property
     def path(self) -> Path:
