@@ -63,6 +63,7 @@ STAGE_ORDER = (
     "verification", "consistency", "pose graph",
     "final pass",
 )
+_PASS_STAGES = ("ground mapping", "matching", "consistency", "pose graph")  # seconds per pass of the drive
 
 
 # ---------------------------------------------------------------------------------- the drive
@@ -200,14 +201,15 @@ def run_child(args: argparse.Namespace) -> dict:
             profiler.disable()
             profiler.dump_stats(args.profile)
 
+    source.stage_times = _peak_stage_times() if record_stages is not None else None
     if args.torch_profile:
         from torch.profiler import ProfilerActivity, profile
 
         with profile(activities=[ProfilerActivity.CPU]) as tp:
-            run, stage_times = _with_stages(record_stages, profiled)
+            run, stage_times = _with_stages(record_stages, source.stage_times, profiled)
         tp.export_chrome_trace(str(args.torch_profile))
     else:
-        run, stage_times = _with_stages(record_stages, profiled)
+        run, stage_times = _with_stages(record_stages, source.stage_times, profiled)
     wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started
     online = (online_end[0] if online_end else time.perf_counter()) - started
     cpu_online = (online_cpu[0] if online_cpu else time.process_time()) - cpu_started
@@ -248,13 +250,15 @@ def run_child(args: argparse.Namespace) -> dict:
 
 
 def _pass_rows(source: _PassMarks, started: float) -> list[dict]:
-    """Per pass of the drive: frames, seconds of driving and of wall time, frames/s, RSS at its end."""
-    rows, prev_frames, prev_wall = [], 0, started
-    for frames, wall, rss in source.marks:
+    """Per pass of the drive: frames, seconds of driving and of wall time, frames/s, RSS at its end,
+    and the seconds of the main stages that ended within it."""
+    rows, prev_frames, prev_wall, prev_stages = [], 0, started, {}
+    for frames, wall, rss, stages in source.marks:
         drive = float(source.frame_times[frames - 1] - source.frame_times[max(prev_frames - 1, 0)])
         rows.append({"frames": frames - prev_frames, "drive_s": drive, "wall_s": wall - prev_wall,
-                     "frames_per_s": (frames - prev_frames) / max(wall - prev_wall, 1e-9), "rss_mib": rss})
-        prev_frames, prev_wall = frames, wall
+                     "frames_per_s": (frames - prev_frames) / max(wall - prev_wall, 1e-9), "rss_mib": rss,
+                     "stage_s": {k: v - prev_stages.get(k, 0.0) for k, v in stages.items()}})
+        prev_frames, prev_wall, prev_stages = frames, wall, stages
     return rows
 
 
@@ -272,7 +276,8 @@ class _PassMarks:
             self.pass_ends.append(len(source))
         self.frame_times, self.T_odom_base = source.frame_times, source.T_odom_base
         self.camera, self.odometry, self.groundtruth = source.camera, source.odometry, source.groundtruth
-        self.marks: list[tuple[int, float, float]] = []  # (frames read, perf_counter, RSS MiB)
+        self.stage_times = None  # the run's stage table, when recorded
+        self.marks: list[tuple[int, float, float, dict]] = []  # (frames read, perf_counter, RSS MiB, stage s)
 
     def __len__(self) -> int:
         return len(self.source)
@@ -286,7 +291,9 @@ class _PassMarks:
         """Mark every pass that ends within the first `frames` frames and is not marked yet."""
         for end in self.pass_ends:
             if end <= frames and all(m[0] != end for m in self.marks):
-                self.marks.append((end, time.perf_counter(), self._rss()))
+                times = self.stage_times
+                stages = {name: times.total(name) for name in _PASS_STAGES} if times is not None else {}
+                self.marks.append((end, time.perf_counter(), self._rss(), stages))
 
     def ortho(self):
         return self.source.ortho()
@@ -346,10 +353,10 @@ def _peak_stage_times():
     return PeakStageTimes()
 
 
-def _with_stages(record_stages, fn):
+def _with_stages(record_stages, times, fn):
     if record_stages is None:
         return fn(), None
-    with record_stages(_peak_stage_times()) as times:
+    with record_stages(times) as times:
         run = fn()
     return run, times
 
@@ -425,11 +432,14 @@ def report(results: list[tuple[str, dict]]) -> str:
     for label, r in results:
         if len(r.get("passes") or []) > 1:
             lines.append(f"per pass of the drive, {label} (wall and RSS when its last frame was read):")
-            lines.append("| pass | frames | driving s | wall s | frames/s | RSS MiB |")
-            lines.append("|---|---|---|---|---|---|")
+            names = list(r["passes"][0].get("stage_s") or {})
+            lines.append("| pass | frames | driving s | wall s | frames/s | RSS MiB |"
+                         + "".join(f" {n} s |" for n in names))
+            lines.append("|---|---|---|---|---|---|" + "---|" * len(names))
             for i, row in enumerate(r["passes"]):
                 lines.append(f"| {i + 1} | {row['frames']} | {row['drive_s']:.0f} | {row['wall_s']:.0f} | "
-                             f"{row['frames_per_s']:.2f} | {row['rss_mib']:.0f} |")
+                             f"{row['frames_per_s']:.2f} | {row['rss_mib']:.0f} |"
+                             + "".join(f" {row['stage_s'].get(n, 0.0):.1f} |" for n in names))
             lines.append("")
     for label, r in results:
         raised = sorted(((r.get("stages") or {}).get("peak_raised_mib") or {}).items(), key=lambda kv: -kv[1])
