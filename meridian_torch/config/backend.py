@@ -94,11 +94,12 @@ class BackendConfig(StrictModel):
         "freedom; null: no gate",
     )
     online_window_submaps: int | None = Field(
-        default=None,
+        default=100,
         ge=1,
         description="after the fix, the online consistency graph holds only the candidates of the last this many "
-        "submaps; older accepted loop closures stay in the pose graph (null: the whole drive, whose cost grows "
-        "with its length)",
+        "submaps; older accepted loop closures stay in the pose graph. The consistency gates widen with the path "
+        "between two submaps, so a submap this far back agrees with nearly every candidate and adds cost, not "
+        "information; the window keeps the cost per submap from growing with the drive (null: the whole drive)",
     )
     final_rematch: bool = Field(
         default=True, description="finalize: re-match every submap with the rotation prior near the trajectory (pass 2)"
