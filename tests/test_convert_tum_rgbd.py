@@ -114,6 +114,7 @@ def test_cli_writes_a_sequence_and_refuses_to_overwrite(tum_tree, tmp_path: Path
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "skipped 0 colour images" in result.output
+
     def must_not_read(*_args: object) -> None:
         raise AssertionError("the orthophoto was read before the existing output was refused")
 

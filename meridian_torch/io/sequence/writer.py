@@ -57,7 +57,7 @@ class SequenceWriter:
         """Refuse an existing `path` unless `overwrite`: callers check before rendering or
         converting, so that the refusal does not come after the work."""
         if Path(path).exists() and not overwrite:
-            raise SequenceFormatError(f"{path}: already exists (pass overwrite=True to replace it)")
+            raise SequenceFormatError(f"{path}: already exists; pass --overwrite (overwrite=True in Python) to replace it")
 
     @property
     def path(self) -> Path:
