@@ -126,6 +126,25 @@ def test_disk_overlap_matches_the_exact_area_for_a_half_plane(cx: float, cy: flo
     assert float(disk_overlap(torch.tensor([[cx, cy]], dtype=torch.float64), r, inside)) == pytest.approx(1.0)
 
 
+@pytest.mark.parametrize("budget", [1, 3 * 32 * 5, 1 << 20])  # one disk, three disks, all disks per chunk
+def test_disk_overlap_in_chunks_counts_every_sample_like_a_plain_loop(budget: int, monkeypatch) -> None:
+    monkeypatch.setattr("meridian_torch.matching.place_recognition.descriptors._OVERLAP_ELEMENTS", budget)
+    g = torch.Generator().manual_seed(3)
+    centres = torch.rand(7, 2, generator=g, dtype=torch.float64) * 100
+    lo = torch.rand(5, 2, generator=g, dtype=torch.float64) * 100
+    boxes = torch.stack([lo[:, 0], lo[:, 0] + 40, lo[:, 1], lo[:, 1] + 25], dim=1)
+    radius = 12.0
+    frac = disk_overlap(centres, radius, boxes)
+    # The documented estimate: the centres of a 32 x 32 grid over the disk's square that lie in the disk.
+    axis = [(k + 0.5) / 32 * 2 - 1 for k in range(32)]
+    samples = [(u * radius, v * radius) for v in axis for u in axis if u * u + v * v <= 1.0]
+    for s, (cx, cy) in enumerate(centres.tolist()):
+        for p, (x0, x1, y0, y1) in enumerate(boxes.tolist()):
+            inside = sum(x0 <= cx + dx <= x1 and y0 <= cy + dy <= y1 for dx, dy in samples)
+            assert float(frac[s, p]) == inside / len(samples)
+    assert disk_overlap(centres[:0], radius, boxes).shape == (0, 5)
+
+
 def test_near_mode_picks_the_patches_around_the_prediction() -> None:
     # A 3 x 3 grid of 60 m patches at a 30 m stride; the prediction sits in the top-right corner.
     bounds = torch.tensor([[30.0 * i, 30.0 * i + 60, 30.0 * j, 30.0 * j + 60] for j in range(3) for i in range(3)])
