@@ -66,7 +66,7 @@ def disk_overlap(centres_xy: torch.Tensor, radius_m: float, bounds_xy: torch.Ten
         in_x = ((x >= b[:, 0]) & (x <= b[:, 1])).to(dtype)  # (s, 32, P)
         in_y = ((y >= b[:, 2]) & (y <= b[:, 3])).to(dtype)
         fractions.append(torch.einsum("ji,sip,sjp->sp", in_disk, in_x, in_y) / n_samples)
-    return torch.cat(fractions) if fractions else torch.zeros(0, len(b), dtype=dtype, device=device)
+    return torch.cat(fractions)  # no disks: split still yields one empty chunk
 
 
 def resolved_mode(cfg: PlaceRecognitionConfig, n_patches: int) -> str:
