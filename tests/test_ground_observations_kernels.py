@@ -1,6 +1,6 @@
 """The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
 group, the outlier mask and the occluded-point clearance built on them against the former
-KD-tree computations (bitwise), and the tracker's occluded-voxel test against a loop over all
+KD-tree computations (bitwise), the runs' means against NumPy's reduceat, and the tracker's occluded-voxel test against a loop over all
 pairs and its sorted merge against np.insert."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from meridian_torch.mapping.cloud_kernels import (
     group_dbscan_labels,
     group_knn_distances,
     merge_sorted_rows,
+    run_means,
     voxels_reached,
 )
 from meridian_torch.mapping.ground_observations import (
@@ -221,6 +222,26 @@ def test_merge_sorted_rows_equals_insert_at_searchsorted(seed, n, m, columns):
     pos = np.searchsorted(keys, new_keys)
     assert np.array_equal(merged_keys, np.insert(keys, pos, new_keys))
     assert np.array_equal(merged_rows, np.insert(rows, pos, new_rows, axis=0))
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 400), st.integers(1, 4), st.sampled_from([0.0, 0.003, 0.05, 0.5, 1.0]))
+def test_run_means_equal_reduceat_of_the_gathered_rows(seed, n, columns, run_start_rate):
+    # runs of 1 to 400 rows: every branch of NumPy's pairwise sum (< 8, <= 128, halved above)
+    rng = np.random.default_rng(seed)
+    # magnitudes far apart (the order of the sums shows in the rounding), signed zeros, repeats
+    values = rng.normal(size=(n, columns)) * 10.0 ** rng.integers(-8, 9, (n, columns))
+    values[rng.random((n, columns)) < 0.1] = -0.0
+    order = rng.permutation(n)
+    first = rng.random(n) < run_start_rate
+    first[:1] = True
+    means, heads = run_means(values, order, first)
+    start = np.flatnonzero(first)
+    expected = np.add.reduceat(values[order], start, axis=0) / np.diff(np.r_[start, n])[:, None] if n else \
+        np.zeros((0, columns))
+    assert means.shape == expected.shape
+    assert np.array_equal(means.view(np.int64), expected.view(np.int64))  # bitwise, -0.0 included
+    assert np.array_equal(heads, order[start])
+
+
 # ----------------------------------------------------------------------------- any within
 
 

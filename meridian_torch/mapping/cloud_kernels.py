@@ -10,7 +10,7 @@ are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy
 the k-NN distances equal cKDTree's bitwise and `group_any_within` decides as
 cKDTree.query(distance_upper_bound=radius) (squared distance < radius * radius).
 `group_voxel_order` is the stable (group, voxel) sort behind voxel downsampling and the DBSCAN
-cells; `voxels_reached` and `merge_sorted_rows` the tracker's test of occluded voxels against a
+cells, `run_means` the means of its runs; `voxels_reached` and `merge_sorted_rows` the tracker's test of occluded voxels against a
 cloud on the same lattice and its growth. The kernels release the GIL (frames run in threads).
 """
 
@@ -23,7 +23,7 @@ from meridian_torch.core.union_find import find_root
 
 __all__ = [
     "group_any_within", "group_dbscan_labels", "group_knn_distances", "group_voxel_order", "merge_sorted_rows",
-    "voxels_reached",
+    "run_means", "voxels_reached",
 ]
 
 _BRUTE_FORCE_MAX = 48  # groups up to this size are searched pair by pair (faster than a grid)
@@ -478,6 +478,64 @@ def group_voxel_order(points: np.ndarray, groups: np.ndarray, voxel_m: float) ->
     for i in range(1, n):
         first[i] = key[order[i]] != key[order[i - 1]]
     return order, first, largest
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_sum(values: np.ndarray, order: np.ndarray, lo: int, n: int, col: int) -> float:
+    """NumPy's pairwise sum (`pairwise_sum_DOUBLE`: 8 partial sums up to 128 terms, halves at
+    multiples of 8 above) of values[order[lo:lo + n], col], starting from -0.0 as NumPy does."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += values[order[lo + i], col]
+        return res
+    if n <= 128:
+        r = np.empty(8)
+        for j in range(8):
+            r[j] = values[order[lo + j], col]
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += values[order[lo + i + j], col]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += values[order[lo + i], col]
+            i += 1
+        return res
+    half = n // 2
+    half -= half % 8
+    return _pairwise_sum(values, order, lo, half, col) + _pairwise_sum(values, order, lo + half, n - half, col)
+
+
+@njit(cache=True, nogil=True)
+def run_means(values: np.ndarray, order: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of `values` (N, C) float64 over every run of the rows taken in `order` (N,), a run
+    starting where `first` (N,) is True (first[0] must be): (means (M, C), index of each run's
+    first row (M,)). Bitwise `np.add.reduceat(values[order], starts, axis=0) / counts` (a run's
+    first row plus NumPy's pairwise sum of the others), without gathering the (N, C) rows."""
+    n, c = values.shape
+    starts = np.flatnonzero(first)
+    m = len(starts)
+    means = np.empty((m, c))
+    heads = np.empty(m, np.int64)
+    rest = np.empty(c)
+    for run in range(m):
+        lo = starts[run]
+        count = (starts[run + 1] if run + 1 < m else n) - lo
+        heads[run] = order[lo]
+        if count <= 8:  # the common case, row by row: the rest summed in order from -0.0
+            rest[:] = -0.0
+            for i in range(lo + 1, lo + count):
+                row = order[i]
+                for j in range(c):
+                    rest[j] += values[row, j]
+        else:
+            for j in range(c):
+                rest[j] = _pairwise_sum(values, order, lo + 1, count - 1, j)
+        for j in range(c):
+            means[run, j] = (values[order[lo], j] + rest[j]) / count
+    return means, heads
 
 
 @njit(cache=True, nogil=True)

@@ -36,6 +36,7 @@ from meridian_torch.mapping.cloud_kernels import (
     group_dbscan_labels,
     group_knn_distances,
     group_voxel_order,
+    run_means,
 )
 from meridian_torch.perception.protocols import SegmentDescriber, Segmenter
 
@@ -138,17 +139,15 @@ def group_unique(keys: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.n
 def group_voxel_downsample(
     values: np.ndarray, groups: np.ndarray, voxel_m: float, dims: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of `values` (N, C) per (group, voxel of the first `dims` columns): (values (M, C), groups (M,)).
+    """Mean of `values` (N, C) float64 per (group, voxel of the first `dims` columns): (values (M, C), groups (M,)).
 
     Output is sorted by group, then voxel key.
     """
     if len(values) == 0:
         return values.reshape(0, values.shape[1]), groups[:0]
     order, first = group_voxel_runs(values[:, :dims], groups, voxel_m)
-    start = np.flatnonzero(first)
-    counts = np.diff(np.r_[start, len(order)])
-    means = np.add.reduceat(values[order], start, axis=0) / counts[:, None]
-    return means, groups[order[start]]
+    means, heads = run_means(np.ascontiguousarray(values, dtype=np.float64), order, first)
+    return means, groups[heads]
 
 
 def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.ndarray:
@@ -225,8 +224,8 @@ def group_largest_cluster(
     cell_of = np.empty(len(points), dtype=np.int64)
     cell_of[order] = np.cumsum(first) - 1
     weight = np.diff(np.r_[start, len(order)]).astype(np.float64)
-    rep = np.add.reduceat(points[order].astype(np.float64), start, axis=0) / weight[:, None]
-    rep_group = groups[order[start]]
+    rep, heads = run_means(np.ascontiguousarray(points, dtype=np.float64), order, first)
+    rep_group = groups[heads]
     n = len(rep)
     label = group_dbscan_labels(rep, weight, _group_starts(rep_group), float(eps), float(min_points))
     clustered = label >= 0
