@@ -13,10 +13,11 @@ from meridian_torch.config.matching import CoarseSearchConfig
 from meridian_torch.matching.place_recognition import (
     build_coarse_map,
     chain_scores,
+    coarse,
     patch_priors,
     submap_scores,
 )
-from meridian_torch.matching.place_recognition.coarse import _cell_owners, _rasterise
+from meridian_torch.matching.place_recognition.coarse import _cell_owners, _map_grid, _rasterise
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 from tests.numerics import reassociation_tolerance
 
@@ -88,8 +89,9 @@ def test_a_planted_submap_is_found_at_its_patch_and_yaw_among_random_decoys() ->
         assert (priors.centre_xy[best] - centre.double()).norm() <= CFG.cell_m * 1.5
 
 
-def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col: int) -> float:
-    """Pearson correlation inside the disk around cell (row, col), from the rasters directly."""
+def _slow_pearson(cmap, grid, ground, centre_odom, cfg, yaw_index: int, row: int, col: int) -> float:
+    """Pearson correlation inside the disk around cell (row, col) of the map's blurred class grids
+    `grid` (C, H, W), from the rasters directly."""
     r = int(math.ceil(cfg.radius_m / cfg.cell_m))
     yaw = yaw_index * 2 * math.pi / cfg.yaws
     c, s = math.cos(yaw), math.sin(yaw)
@@ -108,9 +110,7 @@ def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col:
     kernel = _blur(_rasterise(xy, _channels(cls, angle + yaw, cfg), (-half, -half), cfg.cell_m, (2 * r + 1,) * 2,
                               n_channels),
                    cfg.blur_cells).double()
-    fh, fw = cmap.fft_shape
-    grid = torch.fft.irfft2(cmap.map_spectrum, s=(fh, fw))[:, : cmap.shape[0], : cmap.shape[1]].double()
-    window = torch.nn.functional.pad(grid, (r, r, r, r))[:, row : row + 2 * r + 1, col : col + 2 * r + 1]
+    window = torch.nn.functional.pad(grid.double(), (r, r, r, r))[:, row : row + 2 * r + 1, col : col + 2 * r + 1]
     u = torch.arange(-r, r + 1)
     disk = ((u[:, None] ** 2 + u[None] ** 2) <= r * r).expand_as(kernel)
     a, g = window[disk], kernel[disk]
@@ -121,9 +121,13 @@ def _slow_pearson(cmap, ground, centre_odom, cfg, yaw_index: int, row: int, col:
 
 
 @pytest.mark.parametrize("cfg", [CFG, CFG.model_copy(update={"classes": 2, "orientation_bins": 3})])
-def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws(cfg: CoarseSearchConfig) -> None:
+@pytest.mark.parametrize("tile", [None, 48])  # the size the map picks (one tile here), and many small tiles
+def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws(cfg: CoarseSearchConfig, tile, monkeypatch) -> None:
+    if tile is not None:
+        monkeypatch.setattr(coarse, "_tile_size", lambda *args: tile)
     batch, bounds = _random_map(1, side=4)
     cmap = build_coarse_map(batch, bounds, cfg)
+    grid, _ = _map_grid(batch, bounds.double(), cmap.class_centres, cfg)
     centre = torch.tensor([40.0, 40.0])
     ground = _planted_submap(batch, centre, 0.7, torch.tensor([3.0, -2.0]), cfg.radius_m)
     centre_odom = _odom_centre(centre, 0.7, torch.tensor([3.0, -2.0]))
@@ -132,13 +136,18 @@ def test_batched_scores_equal_a_slow_loop_over_cells_and_yaws(cfg: CoarseSearchC
     assert submap_scores(cmap, ground, centre_odom, cfg, out=reused) is reused and torch.equal(reused, volume)
     h, w = cmap.shape
     side = 2 * math.ceil(cfg.radius_m / cfg.cell_m) + 1
-    # the FFT's rounding: sums over the padded grid, relative to the correlation's scale
-    tol = reassociation_tolerance(torch.float32, cmap.fft_shape[0] * cmap.fft_shape[1], side * side)
+    valid = cmap.tile_size - side + 1
+    assert (tile is None) or math.prod(cmap.tile_layout) == math.ceil(h / valid) * math.ceil(w / valid) > 1
+    # the FFT's rounding: sums over a tile, relative to the correlation's scale
+    tol = reassociation_tolerance(torch.float32, cmap.tile_size**2, side * side)
     gen = torch.Generator().manual_seed(3)
-    for _ in range(12):
+    # random cells, and cells on both sides of every tile border
+    cells = [tuple(int(torch.randint(n, (1,), generator=gen)) for n in (h, w)) for _ in range(12)]
+    cells += [(min(edge, h - 1), min(edge, w - 1)) for k in range(1, max(cmap.tile_layout) + 1)
+              for edge in (k * valid - 1, k * valid)]
+    for row, col in cells:
         k = int(torch.randint(cfg.yaws, (1,), generator=gen))
-        row, col = (int(torch.randint(n, (1,), generator=gen)) for n in (h, w))
-        slow = _slow_pearson(cmap, ground, centre_odom, cfg, k, row, col)
+        slow = _slow_pearson(cmap, grid, ground, centre_odom, cfg, k, row, col)
         assert abs(float(volume[k, row, col]) - slow) <= tol, (k, row, col)
 
 
@@ -274,7 +283,7 @@ def test_seeded_runs_are_identical() -> None:
         cmap = build_coarse_map(batch, bounds, cfg)
         ground = _planted_submap(batch, torch.tensor([30.0, 30.0]), 0.3, torch.zeros(2), cfg.radius_m)
         volume = submap_scores(cmap, ground, _odom_centre(torch.tensor([30.0, 30.0]), 0.3, torch.zeros(2)), cfg)
-        runs.append((cmap.class_centres, cmap.map_spectrum, volume))
+        runs.append((cmap.class_centres, cmap.tile_spectra, volume))
     for a, b in zip(*runs):
         assert torch.equal(a, b)
 

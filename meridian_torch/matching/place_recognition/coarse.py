@@ -2,8 +2,10 @@
 
 The aerial map's points and sampled line points are rasterised once into per-class occupancy
 grids (classes: descriptor clusters, `CoarseSearchConfig.classes`), blurred and Fourier
-transformed. A submap is rasterised around its centre at every yaw of a grid and correlated
-with the whole map by FFT, normalised per window (Pearson correlation over the submap's disk),
+transformed in square tiles. A submap is rasterised around its centre at every yaw of a grid and
+correlated with the whole map by FFT, tile by tile (overlap-save: each tile's circular correlation
+is exact away from its first side - 1 rows and columns, which the tiles' overlap covers),
+normalised per window (Pearson correlation over the submap's disk),
 giving a (yaws, H, W) score volume over (T_world_odom yaw, submap centre cell). Successive
 submaps share T_world_odom up to odometry drift, so a chain of submaps is scored jointly by a
 recursive filter: the previous chain volume, max-pooled by the drift slack, is shifted by the
@@ -47,8 +49,9 @@ class CoarseMap:
     origin_xy: tuple[float, float]
     cell_m: float
     shape: tuple[int, int]  # (H, W)
-    fft_shape: tuple[int, int]  # zero-padded size of the correlations (no wrap-around)
-    map_spectrum: torch.Tensor  # (C, fh, fw // 2 + 1) rfft2 of the blurred class grids
+    tile_size: int  # F: side of the square tiles the correlations are computed in (overlap-save)
+    tile_spectra: torch.Tensor  # (C, T, F, F // 2 + 1) rfft2 of the blurred class grids' tiles, T = rows x cols
+    tile_layout: tuple[int, int]  # (rows, cols) of tiles; tile (i, j) yields the cells from (i, j) * (F - side + 1)
     window_energy: torch.Tensor  # (H, W) sum of squared deviations of the grid in the disk around each cell
     cell_patch: torch.Tensor  # (H * W,) int64 patch owning each cell, -1 off the map
     class_centres: torch.Tensor  # (C, D) unit descriptor cluster centres (C = 1: zeros)
@@ -213,10 +216,9 @@ def _cell_owners(origin: tuple[float, float], cell_m: float, shape: tuple[int, i
     return owner.reshape(-1)
 
 
-def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> CoarseMap:
-    """Rasterise, blur and transform the aerial map's primitives (P patches, `bounds_xy` (P, 4))."""
-    bounds = torch.as_tensor(bounds_xy, dtype=torch.float64)
-    centres = _class_centres(primitives, cfg.classes, cfg.seed)
+def _map_grid(primitives: PrimitiveBatch, bounds: torch.Tensor, centres: torch.Tensor, cfg: CoarseSearchConfig
+              ) -> tuple[torch.Tensor, tuple[float, float]]:
+    """The blurred class grids (C, H, W) of the map's primitives and the grid's origin."""
     margin = cfg.radius_m
     origin = (float(bounds[:, 0].min()) - margin, float(bounds[:, 2].min()) - margin)
     h = int(math.ceil((float(bounds[:, 3].max()) + margin - origin[1]) / cfg.cell_m))
@@ -231,7 +233,41 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
         )
         torch.maximum(occupancy, _rasterise(xy, _channels(cls, angle, cfg), origin, cfg.cell_m, (h, w), n_channels),
                       out=occupancy)
-    grid = _blur(occupancy, cfg.blur_cells)
+    return _blur(occupancy, cfg.blur_cells), origin
+
+
+def _tile_size(shape: tuple[int, int], side: int, n_channels: int) -> int:
+    """Tile side F (a fast FFT length) for correlating a map of `shape` with `side`-wide kernels of
+    `n_channels` tile by tile: the least estimated work per yaw, F^2 x (2.5 log2 F per inverse FFT
+    of a tile and per half FFT of a channel's kernel + 4 per channel and tile for the products), each
+    tile yielding F - side + 1 cells a side."""
+    def work(f: int) -> float:
+        tiles = math.ceil(shape[0] / (f - side + 1)) * math.ceil(shape[1] / (f - side + 1))
+        return f * f * (2.5 * math.log2(f) * (tiles + n_channels / 2) + 4 * n_channels * tiles)
+
+    sizes = {_fast_size(n) for n in range(2 * side, 2 * (max(shape) + side), 8)}
+    return min(sorted(sizes), key=work)
+
+
+def _tile_spectra(grid: torch.Tensor, side: int, tile: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """(C, T, F, F // 2 + 1) rfft2 of the F x F tiles of the grid (zero outside), tile (i, j) starting at
+    (i, j) * (F - side + 1) - side // 2, and the (rows, cols) layout."""
+    c, h, w = grid.shape
+    valid, r = tile - side + 1, side // 2
+    layout = (math.ceil(h / valid), math.ceil(w / valid))
+    padded = torch.zeros(c, layout[0] * valid + side - 1, layout[1] * valid + side - 1)
+    padded[:, r : r + h, r : r + w] = grid
+    tiles = padded.unfold(1, tile, valid).unfold(2, tile, valid)  # (C, rows, cols, F, F)
+    return torch.fft.rfft2(tiles.reshape(c, -1, tile, tile)), layout
+
+
+def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: CoarseSearchConfig) -> CoarseMap:
+    """Rasterise, blur and transform the aerial map's primitives (P patches, `bounds_xy` (P, 4))."""
+    bounds = torch.as_tensor(bounds_xy, dtype=torch.float64)
+    centres = _class_centres(primitives, cfg.classes, cfg.seed)
+    grid, origin = _map_grid(primitives, bounds, centres, cfg)
+    _, h, w = grid.shape
+    n_channels = len(grid)
     side = 2 * _radius_cells(cfg) + 1
     fft_shape = (_fast_size(h + side - 1), _fast_size(w + side - 1))
     cell_patch = _cell_owners(origin, cfg.cell_m, (h, w), bounds)
@@ -243,12 +279,15 @@ def build_coarse_map(primitives: PrimitiveBatch, bounds_xy: torch.Tensor, cfg: C
     ]
     n_window = n_channels * float(_disk(cfg).sum())
     energy = (window(grid.square().sum(0)) - window(grid.sum(0)).square() / n_window).clamp_min(0)
+    tile = _tile_size((h, w), side, n_channels)
+    tile_spectra, layout = _tile_spectra(grid, side, tile)
     return CoarseMap(
         origin_xy=origin,
         cell_m=cfg.cell_m,
         shape=(h, w),
-        fft_shape=fft_shape,
-        map_spectrum=torch.fft.rfft2(grid, s=fft_shape),
+        tile_size=tile,
+        tile_spectra=tile_spectra,
+        tile_layout=layout,
         window_energy=energy.float(),
         cell_patch=cell_patch,
         class_centres=centres,
@@ -289,30 +328,38 @@ def submap_scores(cmap: CoarseMap, ground: PrimitiveSet, centre_odom_xy: torch.T
     n_window = n_classes * disk.sum()
     kernel = (kernel - kernel.sum((1, 2, 3), keepdim=True) / n_window) * disk  # zero mean inside the disk
     kernel_norm = kernel.flatten(1).norm(dim=1)  # (K,)
-    fh, fw = cmap.fft_shape
     h, w = cmap.shape
+    tile = cmap.tile_size
+    valid = tile - side + 1
+    rows, cols = cmap.tile_layout
     volume = torch.empty(len(yaws), h, w) if out is None else out
-    # One yaw at a time through buffers made once per call: the spectra of all yaws at once were
-    # fresh allocations of hundreds of MB, and their page faults took half of the CPU time.
-    spectra = torch.empty(n_classes, fh, fw // 2 + 1, dtype=cmap.map_spectrum.dtype)
-    product = torch.empty_like(spectra)
-    summed = torch.empty(fh, fw // 2 + 1, dtype=spectra.dtype)
-    corr = torch.empty(fh, fw)
+    # Overlap-save: each F x F map tile's circular correlation with the kernel is exact on its last
+    # F - side + 1 rows and columns. The kernel's spectrum is then F x F, not the padded map's: at
+    # the map's size its column FFTs were most of a submap's time. One yaw at a time through buffers
+    # made once per call (fresh volumes of this size cost as much in page faults as the FFTs).
+    summed = torch.empty(cmap.tile_spectra.shape[1:], dtype=cmap.tile_spectra.dtype)
+    product = torch.empty_like(summed)
+    corr = torch.empty(rows * cols, tile, tile)
+    tiled = torch.empty(rows * valid, cols * valid)  # the tiles' exact cells side by side
     energy_sqrt = cmap.window_energy.sqrt()
     ok_cells = cmap.window_energy >= cfg.min_window_energy
     flipped = torch.flip(kernel, (-2, -1))
     for y in range(len(yaws)):
-        # correlation = convolution with the flipped kernel; rfft2(s=(fh, fw)) in two passes, the
-        # first over the kernel's few rows only (the padded rows are zero)
-        torch.fft.fft(torch.fft.rfft(flipped[y], n=fw, dim=-1), n=fh, dim=-2, out=spectra)
-        torch.sum(torch.mul(cmap.map_spectrum, spectra, out=product), 0, out=summed)
-        torch.fft.irfft2(summed, s=(fh, fw), out=corr)
-        if kernel_norm[y] > 0:
-            # full convolution index n = cell + r; Pearson: divided by both norms where the map has energy
-            torch.div(corr[r : r + h, r : r + w], torch.where(ok_cells, kernel_norm[y] * energy_sqrt, 1.0), out=volume[y])
-            volume[y].masked_fill_(~ok_cells, 0.0)
-        else:
+        if kernel_norm[y] == 0:
             volume[y].zero_()
+            continue
+        # correlation = convolution with the flipped kernel
+        # rfft2(s=(F, F)) in two passes, the first over the kernel's few rows only (the others are zero)
+        spectra = torch.fft.fft(torch.fft.rfft(flipped[y], n=tile, dim=-1), n=tile, dim=-2)  # (C, F, F // 2 + 1)
+        torch.mul(cmap.tile_spectra[0], spectra[0], out=summed)
+        for c in range(1, n_classes):
+            summed.add_(torch.mul(cmap.tile_spectra[c], spectra[c], out=product))
+        torch.fft.irfft2(summed, s=(tile, tile), out=corr)
+        tiled.view(rows, valid, cols, valid).copy_(
+            corr[:, side - 1 :, side - 1 :].reshape(rows, cols, valid, valid).transpose(1, 2))
+        # Pearson: divided by both norms where the map has energy
+        torch.div(tiled[:h, :w], torch.where(ok_cells, kernel_norm[y] * energy_sqrt, 1.0), out=volume[y])
+        volume[y].masked_fill_(~ok_cells, 0.0)
     return volume
 
 
