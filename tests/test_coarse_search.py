@@ -218,9 +218,9 @@ def _reference_chain(previous: torch.Tensor, scores: torch.Tensor, step: torch.T
 def test_chain_step_equals_pooling_and_sampling_the_whole_volume(
     yaws: int, slack_m: float, dx: float, dy: float, half_cells: bool, seed: int
 ) -> None:
-    """Separable maxima and shifts sampled along each axis give bitwise the volume of max_pool2d,
-    rolls and a full grid_sample, also for shifts of half cells (where nearest rounding ties),
-    and in place over the previous volume."""
+    """The compiled chain step gives bitwise the volume of max_pool2d, rolls and a full grid_sample,
+    also for shifts of half cells (where nearest rounding ties), in place over the previous volume
+    or the scores, with the yaws split over 1-3 threads."""
     cfg = CoarseSearchConfig(cell_m=2.0, radius_m=10.0, yaws=yaws, chain_decay=0.7, chain_slack_m=slack_m)
     batch, bounds = _random_map(3, side=3)
     cmap = build_coarse_map(batch, bounds, cfg)
@@ -230,9 +230,17 @@ def test_chain_step_equals_pooling_and_sampling_the_whole_volume(
     scores = torch.rand((yaws, *cmap.shape), generator=gen)
     step = torch.tensor([round(dx) + 1.0, round(dy) - 1.0]) if half_cells else torch.tensor([dx, dy])
     expected = _reference_chain(previous, scores, step, cmap, cfg)
-    assert torch.equal(chain_scores(previous, scores, step, cmap, cfg), expected)
-    in_place = previous.clone()
-    assert torch.equal(chain_scores(in_place, scores, step, cmap, cfg, out=in_place), expected)
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2, 3):  # yaw ranges side by side, each overwriting planes its neighbours read
+            torch.set_num_threads(n)
+            assert torch.equal(chain_scores(previous, scores, step, cmap, cfg), expected)
+            in_place = previous.clone()
+            assert torch.equal(chain_scores(in_place, scores, step, cmap, cfg, out=in_place), expected)
+            into_scores = scores.clone()
+            assert torch.equal(chain_scores(previous, into_scores, step, cmap, cfg, out=into_scores), expected)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_patch_priors_take_the_first_yaw_of_a_tie() -> None:

@@ -18,10 +18,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from meridian_torch.config.matching import CoarseSearchConfig
+from meridian_torch.core.parallel import cpu_threads, thread_map
 from meridian_torch.geometry.se2 import rotation_matrix, wrap_line_angle
+from meridian_torch.matching.place_recognition.coarse_kernels import best_yaws, chain_yaws
 from meridian_torch.types import PrimitiveBatch, PrimitiveSet
 
 __all__ = [
@@ -374,7 +377,6 @@ def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_
     """
     if previous is None or cfg.chain_decay == 0:
         return scores if out is None else out.copy_(scores)
-    pooled = _slack_max(previous, int(math.ceil(cfg.chain_slack_m / cfg.cell_m)))
     yaws = _yaws(cfg)
     step = step_odom_xy.float()
     shift_x = torch.cos(yaws) * step[0] - torch.sin(yaws) * step[1]
@@ -385,35 +387,22 @@ def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_
     theta[:, 0, 0] = theta[:, 1, 1] = 1.0
     theta[:, 0, 2] = -shift_x / cfg.cell_m * 2 / w
     theta[:, 1, 2] = -shift_y / cfg.cell_m * 2 / h
+    sources = [_shift_sources(theta[y : y + 1], h, w) for y in range(len(yaws))]
+    rows = torch.stack([r for r, _ in sources]).numpy()
+    cols = torch.stack([c for _, c in sources]).numpy()
     result = torch.empty_like(scores) if out is None else out
-    for y in range(len(yaws)):
-        rows, cols = _shift_sources(theta[y : y + 1], h, w)
-        moved = pooled[y].index_select(0, rows.clamp_min(0)).index_select(1, cols.clamp_min(0))
-        moved.masked_fill_((rows < 0)[:, None] | (cols < 0)[None, :], 0.0)
-        torch.add(scores[y], moved.mul_(cfg.chain_decay), out=result[y])
+    for name, t in (("previous", previous), ("scores", scores), ("out", result)):
+        if t.device.type != "cpu" or t.dtype != torch.float32 or not t.is_contiguous() or t.shape != scores.shape:
+            raise ValueError(f"chain_scores: {name} must be a contiguous CPU float32 tensor of shape "
+                             f"{tuple(scores.shape)}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+    prev, new, res = previous.numpy(), scores.numpy(), result.numpy()
+    # yaw ranges side by side; each reads copies of its neighbours' boundary planes, which they overwrite
+    bounds = np.linspace(0, len(yaws), min(cpu_threads(), len(yaws)) + 1).astype(int)
+    ranges = [(a, b, prev[(a - 1) % len(yaws)].copy(), prev[b % len(yaws)].copy()) for a, b in zip(bounds, bounds[1:])]
+    slack = int(math.ceil(cfg.chain_slack_m / cfg.cell_m))
+    thread_map(lambda r: chain_yaws(prev, new, rows, cols, slack, cfg.chain_decay, r[0], r[1], r[2], r[3], res),
+               ranges)
     return result
-
-
-def _slack_max(volume: torch.Tensor, k: int) -> torch.Tensor:
-    """(yaws, H, W) max over the (2k + 1)^2 cells around each cell (those on the grid) and the
-    neighbouring yaws (circular): max_pool2d's window and two rolls, as separable passes of
-    torch.maximum on shifted views (exact, as any max; max_pool2d at stride 1 took ~20x longer)."""
-    along_x = volume.clone()
-    for d in range(1, k + 1):  # each pass reads a copy it does not write
-        torch.maximum(along_x[..., :-d], volume[..., d:], out=along_x[..., :-d])
-        torch.maximum(along_x[..., d:], volume[..., :-d], out=along_x[..., d:])
-    window = along_x.clone()
-    for d in range(1, k + 1):
-        torch.maximum(window[:, :-d], along_x[:, d:], out=window[:, :-d])
-        torch.maximum(window[:, d:], along_x[:, :-d], out=window[:, d:])
-    if len(window) == 1:
-        return window
-    out = along_x  # spent: the yaw pass writes into it
-    torch.maximum(window[1:], window[:-1], out=out[1:])
-    torch.maximum(window[0], window[-1], out=out[0])
-    torch.maximum(out[:-1], window[1:], out=out[:-1])
-    torch.maximum(out[-1], window[0], out=out[-1])
-    return out
 
 
 def _shift_sources(theta: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -435,14 +424,13 @@ def _shift_sources(theta: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, t
 
 def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig) -> CoarsePriors:
     """Best score of each patch over its cells and all yaws, with the yaw and centre where it is."""
-    # amax / argmax over the yaws as one pass per yaw (argmax along the outer axis is slow):
-    # strictly greater only, so the first yaw of a tie wins, as argmax's
-    best, best_yaw = volume[0].clone(), torch.zeros(volume.shape[1:], dtype=torch.int64)
-    for y in range(1, len(volume)):
-        better = volume[y] > best
-        torch.where(better, volume[y], best, out=best)
-        best_yaw.masked_fill_(better, y)
-    best, best_yaw = best.reshape(-1), best_yaw.reshape(-1)
+    # amax / argmax over the yaws in one compiled pass (torch's argmax along the outer axis is
+    # slow), the cells split over the threads
+    flat = volume.detach().cpu().contiguous().view(len(volume), -1).numpy()
+    best_np, best_yaw_np = np.empty(flat.shape[1], flat.dtype), np.empty(flat.shape[1], np.int64)
+    bounds = np.linspace(0, flat.shape[1], cpu_threads() + 1).astype(int)
+    thread_map(lambda r: best_yaws(flat, r[0], r[1], best_np, best_yaw_np), list(zip(bounds, bounds[1:])))
+    best, best_yaw = torch.from_numpy(best_np), torch.from_numpy(best_yaw_np)
     on_map = cmap.cell_patch >= 0
     owner = cmap.cell_patch.clamp_min(0)
     value = torch.where(on_map, best, float("-inf"))
