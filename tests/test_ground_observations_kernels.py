@@ -1,7 +1,8 @@
 """The compiled grouped-cloud kernels (`mapping.cloud_kernels`) against slow all-pairs loops per
 group, the outlier mask and the occluded-point clearance built on them against the former
-KD-tree computations (bitwise), the runs' means against NumPy's reduceat, and the tracker's occluded-voxel test against a loop over all
-pairs and its sorted merge against np.insert."""
+KD-tree computations (bitwise), the runs' means against NumPy's reduceat (bitwise), and the
+tracker's occluded-voxel test against a loop over all pairs and its sorted merge against
+np.insert."""
 
 from __future__ import annotations
 

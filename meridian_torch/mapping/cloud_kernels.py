@@ -10,8 +10,9 @@ are sqrt(((0 + dx*dx) + dy*dy) + dz*dz) in float64, the same operations as scipy
 the k-NN distances equal cKDTree's bitwise and `group_any_within` decides as
 cKDTree.query(distance_upper_bound=radius) (squared distance < radius * radius).
 `group_voxel_order` is the stable (group, voxel) sort behind voxel downsampling and the DBSCAN
-cells, `run_means` the means of its runs; `voxels_reached` and `merge_sorted_rows` the tracker's test of occluded voxels against a
-cloud on the same lattice and its growth. The kernels release the GIL (frames run in threads).
+cells, `run_means` the means of its runs; `voxels_reached` and `merge_sorted_rows` the tracker's
+test of occluded voxels against a cloud on the same lattice and its growth. The kernels release
+the GIL (frames run in threads).
 """
 
 from __future__ import annotations
