@@ -223,8 +223,14 @@ def test_merge_sorted_rows_equals_insert_at_searchsorted(seed, n, m, columns):
     pos = np.searchsorted(keys, new_keys)
     assert np.array_equal(merged_keys, np.insert(keys, pos, new_keys))
     assert np.array_equal(merged_rows, np.insert(rows, pos, new_rows, axis=0))
+
+
+# ----------------------------------------------------------------------------------- runs' means
+
+
 @settings(max_examples=60, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(0, 400), st.integers(1, 4), st.sampled_from([0.0, 0.003, 0.05, 0.5, 1.0]))
+@given(st.integers(0, 2**32 - 1), st.integers(0, 400), st.integers(1, 4),
+       st.sampled_from([0.0, 0.003, 0.05, 0.5, 1.0]))
 def test_run_means_equal_reduceat_of_the_gathered_rows(seed, n, columns, run_start_rate):
     # runs of 1 to 400 rows: every branch of NumPy's pairwise sum (< 8, <= 128, halved above)
     rng = np.random.default_rng(seed)
@@ -234,13 +240,14 @@ def test_run_means_equal_reduceat_of_the_gathered_rows(seed, n, columns, run_sta
     order = rng.permutation(n)
     first = rng.random(n) < run_start_rate
     first[:1] = True
-    means, heads = run_means(values, order, first)
+    means, heads, counts = run_means(values, order, first)
     start = np.flatnonzero(first)
     expected = np.add.reduceat(values[order], start, axis=0) / np.diff(np.r_[start, n])[:, None] if n else \
         np.zeros((0, columns))
     assert means.shape == expected.shape
     assert np.array_equal(means.view(np.int64), expected.view(np.int64))  # bitwise, -0.0 included
     assert np.array_equal(heads, order[start])
+    assert np.array_equal(counts, np.diff(np.r_[start, n]))
 
 
 # ----------------------------------------------------------------------------- any within

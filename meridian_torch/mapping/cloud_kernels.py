@@ -510,21 +510,23 @@ def _pairwise_sum(values: np.ndarray, order: np.ndarray, lo: int, n: int, col: i
 
 
 @njit(cache=True, nogil=True)
-def run_means(values: np.ndarray, order: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def run_means(values: np.ndarray, order: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean of `values` (N, C) float64 over every run of the rows taken in `order` (N,), a run
     starting where `first` (N,) is True (first[0] must be): (means (M, C), index of each run's
-    first row (M,)). Bitwise `np.add.reduceat(values[order], starts, axis=0) / counts` (a run's
+    first row (M,), rows per run (M,)). Bitwise `np.add.reduceat(values[order], starts, axis=0) / counts` (a run's
     first row plus NumPy's pairwise sum of the others), without gathering the (N, C) rows."""
     n, c = values.shape
     starts = np.flatnonzero(first)
     m = len(starts)
     means = np.empty((m, c))
     heads = np.empty(m, np.int64)
+    counts = np.empty(m, np.int64)
     rest = np.empty(c)
     for run in range(m):
         lo = starts[run]
         count = (starts[run + 1] if run + 1 < m else n) - lo
         heads[run] = order[lo]
+        counts[run] = count
         if count <= 8:  # the common case, row by row: the rest summed in order from -0.0
             rest[:] = -0.0
             for i in range(lo + 1, lo + count):
@@ -536,7 +538,7 @@ def run_means(values: np.ndarray, order: np.ndarray, first: np.ndarray) -> tuple
                 rest[j] = _pairwise_sum(values, order, lo + 1, count - 1, j)
         for j in range(c):
             means[run, j] = (values[order[lo], j] + rest[j]) / count
-    return means, heads
+    return means, heads, counts
 
 
 @njit(cache=True, nogil=True)

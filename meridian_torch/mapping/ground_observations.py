@@ -146,7 +146,7 @@ def group_voxel_downsample(
     if len(values) == 0:
         return values.reshape(0, values.shape[1]), groups[:0]
     order, first = group_voxel_runs(values[:, :dims], groups, voxel_m)
-    means, heads = run_means(np.ascontiguousarray(values, dtype=np.float64), order, first)
+    means, heads, _ = run_means(np.ascontiguousarray(values, dtype=np.float64), order, first)
     return means, groups[heads]
 
 
@@ -220,11 +220,10 @@ def group_largest_cluster(
         return np.zeros(0, dtype=bool), np.zeros(n_groups, dtype=bool)
     cell = eps / 4.0
     order, first = group_voxel_runs(points, groups, cell)
-    start = np.flatnonzero(first)
     cell_of = np.empty(len(points), dtype=np.int64)
     cell_of[order] = np.cumsum(first) - 1
-    weight = np.diff(np.r_[start, len(order)]).astype(np.float64)
-    rep, heads = run_means(np.ascontiguousarray(points, dtype=np.float64), order, first)
+    rep, heads, counts = run_means(np.ascontiguousarray(points, dtype=np.float64), order, first)
+    weight = counts.astype(np.float64)
     rep_group = groups[heads]
     n = len(rep)
     label = group_dbscan_labels(rep, weight, _group_starts(rep_group), float(eps), float(min_points))
