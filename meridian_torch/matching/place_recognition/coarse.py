@@ -397,12 +397,17 @@ def chain_scores(previous: torch.Tensor | None, scores: torch.Tensor, step_odom_
                              f"{tuple(scores.shape)}, got {t.dtype} {tuple(t.shape)} on {t.device}")
     prev, new, res = previous.numpy(), scores.numpy(), result.numpy()
     # yaw ranges side by side; each reads copies of its neighbours' boundary planes, which they overwrite
-    bounds = np.linspace(0, len(yaws), min(cpu_threads(), len(yaws)) + 1).astype(int)
-    ranges = [(a, b, prev[(a - 1) % len(yaws)].copy(), prev[b % len(yaws)].copy()) for a, b in zip(bounds, bounds[1:])]
+    ranges = [(a, b, prev[(a - 1) % len(yaws)].copy(), prev[b % len(yaws)].copy()) for a, b in _thread_ranges(len(yaws))]
     slack = int(math.ceil(cfg.chain_slack_m / cfg.cell_m))
     thread_map(lambda r: chain_yaws(prev, new, rows, cols, slack, cfg.chain_decay, r[0], r[1], r[2], r[3], res),
                ranges)
     return result
+
+
+def _thread_ranges(n: int) -> list[tuple[int, int]]:
+    """0..n split into one contiguous range per pool thread (at most n ranges), for the compiled passes."""
+    bounds = np.linspace(0, n, min(cpu_threads(), max(n, 1)) + 1).astype(int)
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
 
 
 def _shift_sources(theta: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -428,8 +433,7 @@ def patch_priors(cmap: CoarseMap, volume: torch.Tensor, cfg: CoarseSearchConfig)
     # slow), the cells split over the threads
     flat = volume.detach().cpu().contiguous().view(len(volume), -1).numpy()
     best_np, best_yaw_np = np.empty(flat.shape[1], flat.dtype), np.empty(flat.shape[1], np.int64)
-    bounds = np.linspace(0, flat.shape[1], cpu_threads() + 1).astype(int)
-    thread_map(lambda r: best_yaws(flat, r[0], r[1], best_np, best_yaw_np), list(zip(bounds, bounds[1:])))
+    thread_map(lambda r: best_yaws(flat, r[0], r[1], best_np, best_yaw_np), _thread_ranges(flat.shape[1]))
     best, best_yaw = torch.from_numpy(best_np), torch.from_numpy(best_yaw_np)
     on_map = cmap.cell_patch >= 0
     owner = cmap.cell_patch.clamp_min(0)
