@@ -254,7 +254,7 @@ def test_patch_priors_take_the_first_yaw_of_a_tie() -> None:
 
 
 def test_chaining_finds_a_submap_too_poor_to_be_found_alone() -> None:
-    # Each submap keeps a random 20 % of its primitives: alone they are ambiguous, a chain of 6 is not.
+    # Each submap keeps a random 10 % of its primitives: alone they are ambiguous, a chain of 6 is not.
     cfg = CFG.model_copy(update={"chain_decay": 1.0})
     batch, bounds = _random_map(4)
     cmap = build_coarse_map(batch, bounds, cfg)
@@ -269,8 +269,8 @@ def test_chaining_finds_a_submap_too_poor_to_be_found_alone() -> None:
     for k in range(6):
         centre = torch.tensor([30.0 + 8.0 * k, 35.0 + 4.0 * k])
         full = _planted_submap(batch, centre, yaw, t, cfg.radius_m)
-        keep_p = torch.rand(len(full.points_xy), generator=gen) < 0.2
-        keep_l = torch.rand(len(full.line_endpoints), generator=gen) < 0.2
+        keep_p = torch.rand(len(full.points_xy), generator=gen) < 0.1
+        keep_l = torch.rand(len(full.line_endpoints), generator=gen) < 0.1
         ground = PrimitiveSet(full.points_xy[keep_p], full.point_descriptors[keep_p], full.point_segment_ids[keep_p],
                               full.line_endpoints[keep_l], full.line_kinds[keep_l], full.line_descriptors[keep_l],
                               full.line_segment_ids[keep_l])

@@ -203,7 +203,7 @@ class CoarseSearchConfig(StrictModel):
         description="descriptor clusters rasterised as separate grids (1 = geometry only)",
     )
     orientation_bins: int = Field(
-        default=4,
+        default=16,
         ge=0,
         description="line samples go to one raster per orientation bin over [0, pi) (0 = points and lines "
         "share one raster; > 0: points have their own); cost grows with the rasters",
