@@ -246,9 +246,10 @@ class PlaceRecognitionConfig(StrictModel):
     k_coarse: int = Field(
         default=100,
         ge=1,
-        description="patches per submap in 'coarse' mode: the chain ranks the true patch lower on a drive's "
-        "first submaps, and 100 fixed as early as matching every patch on the KITTI-map worlds, at a sixth "
-        "of the cost (25 fixed later; README: Why the defaults)",
+        description="patches per submap in 'coarse' mode. The chain ranks the true patch low on a drive's "
+        "first submaps: 100 fixed within a submap of matching every patch on three of four KITTI-map runs "
+        "(5 submaps later on the fourth), with a third of the matching time; 25 fixed later (README: Why "
+        "the defaults)",
     )
     global_fusion: Literal["auto", "always", "never"] = Field(
         default="auto",
