@@ -239,8 +239,7 @@ class PlaceRecognitionConfig(StrictModel):
         default=100,
         ge=0,
         description="'auto' matches every patch of maps up to this many patches, and the coarse search's top "
-        "k_coarse above it (a map of at most k_coarse patches is matched whole either way). Matching every "
-        "patch costs about 7 ms per patch and submap on 2 cores until the fix",
+        "k_coarse above it. Matching every patch costs about 7 ms per patch and submap on 2 cores until the fix",
     )
     k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
     k_coarse: int = Field(
