@@ -361,7 +361,7 @@ class MatchConfig(StrictModel):
         "reported as a single hypothesis with probability 1",
     )
     patch_chunk: int = Field(
-        default=8,
+        default=16,
         ge=1,
         description="most patches matched together as one group (affinity, particles, registration, "
         "verification); P patches form ceil(P / patch_chunk) groups of equal size: bounds peak memory; on the CPU "

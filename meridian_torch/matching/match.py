@@ -171,7 +171,8 @@ def match_submap(
 def _patch_groups(aerial: PrimitiveBatch, size: int) -> list[Tensor]:
     """The patches by size (most lines first) in ceil(P / size) groups of at most `size`, so that
     each group's tables are padded only to patches like its own. The groups are as equal as can
-    be (25 patches: 7, 6, 6, 6, not 8, 8, 8, 1), so that threads taking them finish together."""
+    be (25 patches in groups of at most 8: 7, 6, 6, 6, not 8, 8, 8, 1), so that threads taking
+    them finish together."""
     by_size = torch.argsort(aerial.used_lengths()[1], descending=True, stable=True)
     return list(by_size.tensor_split(max(1, -(-len(by_size) // size))))
 
