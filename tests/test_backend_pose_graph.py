@@ -76,16 +76,22 @@ def test_covariance_is_in_world_axes() -> None:
 
 
 @settings(max_examples=10, deadline=None)
-@given(turn_deg=st.floats(-3.0, 3.0), start=st.integers(0, 30))
-def test_propagated_covariance_is_the_marginal_of_a_chain(turn_deg: float, start: int) -> None:
+@given(turn_deg=st.floats(-3.0, 3.0), start=st.integers(0, 30), lengths_seed=st.integers(0, 2**16),
+       per_metre=st.booleans())
+def test_propagated_covariance_is_the_marginal_of_a_chain(turn_deg: float, start: int, lengths_seed: int,
+                                                          per_metre: bool) -> None:
     """On a chain with one prior (a tree: linear-Gaussian propagation is exact to first order),
-    carrying node `start`'s marginal along the odometry gives the marginal at the end."""
+    carrying node `start`'s marginal along the odometry gives the marginal at the end, also when
+    the steps differ in length and their noise grows with it."""
     n = 60
+    lengths = np.random.default_rng(lengths_seed).uniform(0.2, 4.0, n)
     yaw = np.radians(turn_deg) * np.arange(n)
-    steps = se2(np.ones(n), np.zeros(n), np.radians(turn_deg) * np.ones(n))
+    steps = se2(lengths, np.zeros(n), np.radians(turn_deg) * np.ones(n))
     odom = np.stack(list(itertools.accumulate(steps[:-1], lambda T, s: T @ s, initial=np.eye(3))))
     assert np.allclose(np.arctan2(odom[:, 1, 0], odom[:, 0, 0]), np.angle(np.exp(1j * yaw)))
     cfg = BackendConfig(odom_rot_sigma_deg=0.5)
+    if per_metre:
+        cfg = BackendConfig(odom_rot_sigma_deg=0.5, odom_trans_sigma_m_per_sqrt_m=0.05, odom_rot_sigma_deg_per_sqrt_m=0.1)
     sol = optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance=True)
     got = propagate_covariance(sol.covariance[start], sol.T_world_base[start:], cfg)
     np.testing.assert_allclose(got, sol.covariance[-1], rtol=1e-3, atol=1e-6)
@@ -93,6 +99,21 @@ def test_propagated_covariance_is_the_marginal_of_a_chain(turn_deg: float, start
     np.testing.assert_allclose(
         optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance="last").covariance[0], sol.covariance[-1]
     )
+
+
+@pytest.mark.parametrize("length", [0.5, 3.0, 12.0])
+def test_odometry_noise_grows_with_the_step_length(length: float) -> None:
+    """One step of `length` m along x after a prior: the marginal of its end is the prior's plus the
+    step's noise (per-step and per-metre variances added), its yaw swinging the lever arm."""
+    cfg = BackendConfig(odom_trans_sigma_m_per_sqrt_m=0.07, odom_rot_sigma_deg_per_sqrt_m=0.2)
+    odom = se2([0.0, length], [0.0, 0.0], [0.0, 0.0])
+    cov = optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance=True).covariance[-1]
+    var_t = cfg.odom_trans_sigma_m**2 + 0.07**2 * length
+    var_yaw = math.radians(cfg.odom_rot_sigma_deg) ** 2 + math.radians(0.2) ** 2 * length
+    prior_t, prior_yaw = cfg.prior_trans_sigma_m**2, math.radians(cfg.prior_rot_sigma_deg) ** 2
+    assert cov[0, 0] == pytest.approx(prior_t + var_t, rel=1e-6)
+    assert cov[1, 1] == pytest.approx(prior_t + var_t + length**2 * prior_yaw, rel=1e-6)
+    assert cov[2, 2] == pytest.approx(prior_yaw + var_yaw, rel=1e-6)
 
 
 def test_corrupted_loop_closure_is_rejected() -> None:

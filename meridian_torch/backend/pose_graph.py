@@ -24,6 +24,7 @@ __all__ = [
     "IncrementalPoseGraph",
     "PoseGraphSolution",
     "align_odometry",
+    "odometry_step_sigmas",
     "optimize_pose_graph",
     "propagate_covariance",
 ]
@@ -131,11 +132,11 @@ class IncrementalPoseGraph:
         if self._isam is None:
             self._start(T_odom_base, prior_nodes, T_world_base_priors, keys)
         else:
-            odom_noise, prior_noise = _noise_models(self.cfg)
+            prior_noise = _prior_noise(self.cfg)
             factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
             if n > self._n:  # new frames start where the odometry carries the last estimate
                 T_world_odom = self._pose(self._n - 1) @ np.linalg.inv(T_odom_base[self._n - 1])
-                _add_odometry(factors, T_odom_base[self._n - 1 :], self._n - 1, odom_noise)
+                _add_odometry(factors, T_odom_base[self._n - 1 :], self._n - 1, self.cfg)
                 for k in range(self._n, n):
                     values.insert(k, _pose2(T_world_odom @ T_odom_base[k]))
             wanted = dict(zip(keys, T_world_base_priors))
@@ -204,17 +205,23 @@ def _pose2(T: np.ndarray):
     return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(yaw_of(T)))
 
 
-def _noise_models(cfg: BackendConfig):
-    """(odometry step noise, loop-closure prior noise) as GTSAM diagonal models."""
+def odometry_step_sigmas(T_base: np.ndarray, cfg: BackendConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Sigmas ((K - 1,) of x and of y in m, (K - 1,) of yaw in rad) of the odometry factors between
+    consecutive poses T_base (K, 3, 3): the per-step term combined with the per-metre term over
+    the step's length (a length, so odometry and world poses give the same)."""
+    root_length = np.sqrt(np.linalg.norm(np.diff(T_base[:, :2, 2], axis=0), axis=1))
+    trans = np.hypot(cfg.odom_trans_sigma_m, cfg.odom_trans_sigma_m_per_sqrt_m * root_length)
+    rot = np.hypot(math.radians(cfg.odom_rot_sigma_deg), math.radians(cfg.odom_rot_sigma_deg_per_sqrt_m) * root_length)
+    return trans, rot
+
+
+def _prior_noise(cfg: BackendConfig):
+    """The loop-closure prior's GTSAM diagonal model."""
     import gtsam
 
-    odom = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([cfg.odom_trans_sigma_m, cfg.odom_trans_sigma_m, math.radians(cfg.odom_rot_sigma_deg)])
-    )
-    prior = gtsam.noiseModel.Diagonal.Sigmas(
+    return gtsam.noiseModel.Diagonal.Sigmas(
         np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
     )
-    return odom, prior
 
 
 def _factor_graph(T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
@@ -222,21 +229,23 @@ def _factor_graph(T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base
     """The graph's factors: the odometry steps (nodes 0..N-1, first), then one prior per loop closure."""
     import gtsam
 
-    odom_noise, prior_noise = _noise_models(cfg)
+    prior_noise = _prior_noise(cfg)
     graph = gtsam.NonlinearFactorGraph()
-    _add_odometry(graph, T_odom_base, 0, odom_noise)
+    _add_odometry(graph, T_odom_base, 0, cfg)
     for node, T in zip(prior_nodes, T_world_base_priors):
         graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
     return graph
 
 
-def _add_odometry(graph, T_odom_base: np.ndarray, first_node: int, noise) -> None:
+def _add_odometry(graph, T_odom_base: np.ndarray, first_node: int, cfg: BackendConfig) -> None:
     """Between-factors for the steps of T_odom_base (K, 3, 3), whose first pose is node `first_node`."""
     import gtsam
 
     steps = np.linalg.inv(T_odom_base[:-1]) @ T_odom_base[1:]
-    for k, step in enumerate(steps, start=first_node):
-        graph.add(gtsam.BetweenFactorPose2(k, k + 1, _pose2(step), noise))
+    trans, rot = odometry_step_sigmas(T_odom_base, cfg)
+    sigmas = np.stack([trans, trans, rot], axis=1)
+    for k, (step, sigma) in enumerate(zip(steps, sigmas), start=first_node):
+        graph.add(gtsam.BetweenFactorPose2(k, k + 1, _pose2(step), gtsam.noiseModel.Diagonal.Sigmas(sigma)))
 
 
 def _world_axes(local: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -262,7 +271,8 @@ def propagate_covariance(covariance: np.ndarray, T_world_base: np.ndarray, cfg: 
     J = np.eye(3)
     J[:, 2] = lever(p[:1])[0]
     out = J @ covariance @ J.T
+    trans, rot = odometry_step_sigmas(T_world_base, cfg)
     v = lever(p[1:])  # a step's yaw noise turns the path from the step's end on
-    out += math.radians(cfg.odom_rot_sigma_deg) ** 2 * v.T @ v
-    out[:2, :2] += (len(p) - 1) * cfg.odom_trans_sigma_m**2 * np.eye(2)
+    out += (v.T * rot**2) @ v
+    out[:2, :2] += (trans**2).sum() * np.eye(2)
     return out
