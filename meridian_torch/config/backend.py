@@ -58,11 +58,11 @@ class BackendConfig(StrictModel):
     odom_trans_sigma_m_per_sqrt_m: float = Field(
         default=0.0,
         ge=0,
-        description="added to a step's x, y variance per metre it travels (random walk in distance, so the "
-        "odometry's weight does not depend on the frame rate; 0 = per step only, the reference)",
+        description="its square times a step's length (m) is added to the step's x, y variance (a random walk "
+        "in distance: the odometry's weight then depends less on the frame rate; 0 = per step only, the reference)",
     )
     odom_rot_sigma_deg_per_sqrt_m: float = Field(
-        default=0.0, ge=0, description="added to a step's yaw variance per metre it travels (as the line above)"
+        default=0.0, ge=0, description="its square times a step's length (m) is added to the step's yaw variance"
     )
     prior_trans_sigma_m: float = Field(default=2.0, gt=0, description="loop-closure prior sigma x, y (reference)")
     prior_rot_sigma_deg: float = Field(default=5.0, gt=0, description="loop-closure prior yaw sigma (reference)")
