@@ -89,9 +89,8 @@ def test_propagated_covariance_is_the_marginal_of_a_chain(turn_deg: float, start
     steps = se2(lengths, np.zeros(n), np.radians(turn_deg) * np.ones(n))
     odom = np.stack(list(itertools.accumulate(steps[:-1], lambda T, s: T @ s, initial=np.eye(3))))
     assert np.allclose(np.arctan2(odom[:, 1, 0], odom[:, 0, 0]), np.angle(np.exp(1j * yaw)))
-    cfg = BackendConfig(odom_rot_sigma_deg=0.5)
-    if per_metre:
-        cfg = BackendConfig(odom_rot_sigma_deg=0.5, odom_trans_sigma_m_per_sqrt_m=0.05, odom_rot_sigma_deg_per_sqrt_m=0.1)
+    cfg = BackendConfig(odom_rot_sigma_deg=0.5, odom_trans_sigma_m_per_sqrt_m=0.05 * per_metre,
+                        odom_rot_sigma_deg_per_sqrt_m=0.1 * per_metre)
     sol = optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance=True)
     got = propagate_covariance(sol.covariance[start], sol.T_world_base[start:], cfg)
     np.testing.assert_allclose(got, sol.covariance[-1], rtol=1e-3, atol=1e-6)

@@ -24,7 +24,6 @@ __all__ = [
     "IncrementalPoseGraph",
     "PoseGraphSolution",
     "align_odometry",
-    "odometry_step_sigmas",
     "optimize_pose_graph",
     "propagate_covariance",
 ]
@@ -205,7 +204,7 @@ def _pose2(T: np.ndarray):
     return gtsam.Pose2(float(T[0, 2]), float(T[1, 2]), float(yaw_of(T)))
 
 
-def odometry_step_sigmas(T_base: np.ndarray, cfg: BackendConfig) -> tuple[np.ndarray, np.ndarray]:
+def _odometry_step_sigmas(T_base: np.ndarray, cfg: BackendConfig) -> tuple[np.ndarray, np.ndarray]:
     """Sigmas ((K - 1,) of x and of y in m, (K - 1,) of yaw in rad) of the odometry factors between
     consecutive poses T_base (K, 3, 3): the per-step term combined with the per-metre term over
     the step's length (a length, so odometry and world poses give the same)."""
@@ -242,7 +241,7 @@ def _add_odometry(graph, T_odom_base: np.ndarray, first_node: int, cfg: BackendC
     import gtsam
 
     steps = np.linalg.inv(T_odom_base[:-1]) @ T_odom_base[1:]
-    trans, rot = odometry_step_sigmas(T_odom_base, cfg)
+    trans, rot = _odometry_step_sigmas(T_odom_base, cfg)
     sigmas = np.stack([trans, trans, rot], axis=1)
     for k, (step, sigma) in enumerate(zip(steps, sigmas), start=first_node):
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, _pose2(step), gtsam.noiseModel.Diagonal.Sigmas(sigma)))
@@ -271,7 +270,7 @@ def propagate_covariance(covariance: np.ndarray, T_world_base: np.ndarray, cfg: 
     J = np.eye(3)
     J[:, 2] = lever(p[:1])[0]
     out = J @ covariance @ J.T
-    trans, rot = odometry_step_sigmas(T_world_base, cfg)
+    trans, rot = _odometry_step_sigmas(T_world_base, cfg)
     v = lever(p[1:])  # a step's yaw noise turns the path from the step's end on
     out += (v.T * rot**2) @ v
     out[:2, :2] += (trans**2).sum() * np.eye(2)
