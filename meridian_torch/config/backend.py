@@ -56,13 +56,13 @@ class BackendConfig(StrictModel):
     odom_trans_sigma_m: float = Field(default=0.05, gt=0, description="odometry between-factor sigma per frame step (reference)")
     odom_rot_sigma_deg: float = Field(default=0.05, gt=0, description="odometry between-factor yaw sigma per frame step (reference)")
     odom_trans_sigma_m_per_sqrt_m: float = Field(
-        default=0.0,
+        default=0.05,
         ge=0,
         description="its square times a step's length (m) is added to the step's x, y variance (a random walk "
         "in distance: the odometry's weight then depends less on the frame rate; 0 = per step only, the reference)",
     )
     odom_rot_sigma_deg_per_sqrt_m: float = Field(
-        default=0.0, ge=0, description="its square times a step's length (m) is added to the step's yaw variance"
+        default=0.05, ge=0, description="its square times a step's length (m) is added to the step's yaw variance"
     )
     prior_trans_sigma_m: float = Field(default=2.0, gt=0, description="loop-closure prior sigma x, y (reference)")
     prior_rot_sigma_deg: float = Field(default=5.0, gt=0, description="loop-closure prior yaw sigma (reference)")
@@ -94,13 +94,13 @@ class BackendConfig(StrictModel):
         default=2, ge=0, description="the most recent submaps keep their alternatives (reference delay)"
     )
     online_gate_chi2: float | None = Field(
-        default=11.34,
+        default=7.81,
         gt=0,
         description="after the fix, a new loop closure whose innovation against the online prediction at its frame "
         "(squared Mahalanobis distance of x, y, yaw under the prediction's covariance plus the loop-closure prior's) "
         "exceeds this is held out of the online pose graph, until closures of two or more submaps fail it at once "
-        "(then the prediction may be what is wrong, and they are all taken); default: chi-square 99 % with 3 degrees of "
-        "freedom; null: no gate",
+        "(then the prediction may be what is wrong, and they are all taken); default: chi-square 95 % with 3 degrees of "
+        "freedom (a held right closure costs one submap's delay, a taken wrong one metres); null: no gate",
     )
     online_window_submaps: int | None = Field(
         default=100,

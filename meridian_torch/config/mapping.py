@@ -224,7 +224,9 @@ class GroundMapConfig(StrictModel):
         default=20.0, ge=0, description="a submap after less odometry travel than this is skipped (newer reference)"
     )
     submap_spacing_after_fix: SubmapSpacingConfig | None = Field(
-        default=None, description="submap spacing from the localizer's global fix on (None: unchanged)"
+        default_factory=lambda: SubmapSpacingConfig(trigger_path_m=20.0, min_interval_s=0.0, min_path_m=20.0),
+        description="submap spacing from the localizer's global fix on (default: every 20 m, the authors' newer "
+        "code; null: unchanged)",
     )
     occluded_ring_m: float = Field(
         default=0.5, ge=0, description="points in the outer ring (radius - this, radius] become occluded"
