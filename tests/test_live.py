@@ -57,17 +57,20 @@ def test_frame_by_frame_equals_the_folder_pipeline(world, live_run) -> None:
 @pytest.mark.slow
 def test_the_estimate_carries_a_covariance_that_grows_between_updates(live_run) -> None:
     estimates, _ = live_run
-    step_var = np.radians(CFG.backend.odom_rot_sigma_deg) ** 2
+    b = CFG.backend
     fixed = [e for e in estimates if e.localized]
     assert fixed and all(e.state == "post" for e in fixed)
     assert all(e.covariance is None and e.state == "pre" for e in estimates[: estimates.index(fixed[0])])
     for e in fixed:
         assert np.allclose(e.covariance, e.covariance.T) and np.all(np.linalg.eigvalsh(e.covariance) > 0)
-    # between two submap updates only odometry adds up: one odometry factor's yaw variance per frame
-    steps = [(a, b) for a, b in zip(fixed, fixed[1:]) if not b.events]
+    # between two submap updates only odometry adds up: one odometry factor's yaw variance per frame,
+    # its per-step term plus its per-metre term over the step (the estimate moves as the odometry)
+    steps = [(first, second) for first, second in zip(fixed, fixed[1:]) if not second.events]
     assert steps
-    for a, b in steps:
-        assert b.covariance[2, 2] - a.covariance[2, 2] == pytest.approx(step_var, rel=1e-6)
+    for first, second in steps:
+        length = np.linalg.norm(second.T_world_base[:2, 3] - first.T_world_base[:2, 3])
+        step_var = np.radians(b.odom_rot_sigma_deg) ** 2 + np.radians(b.odom_rot_sigma_deg_per_sqrt_m) ** 2 * length
+        assert second.covariance[2, 2] - first.covariance[2, 2] == pytest.approx(step_var, rel=1e-6)
 
 
 def test_bad_frames_are_refused_naming_the_field(world) -> None:
