@@ -107,8 +107,9 @@ def test_odometry_noise_grows_with_the_step_length(length: float) -> None:
     cfg = BackendConfig(odom_trans_sigma_m_per_sqrt_m=0.07, odom_rot_sigma_deg_per_sqrt_m=0.2)
     odom = se2([0.0, length], [0.0, 0.0], [0.0, 0.0])
     cov = optimize_pose_graph(odom, np.array([0]), odom[:1], cfg, covariance=True).covariance[-1]
-    var_t = cfg.odom_trans_sigma_m**2 + 0.07**2 * length
-    var_yaw = math.radians(cfg.odom_rot_sigma_deg) ** 2 + math.radians(0.2) ** 2 * length
+    var_t = cfg.odom_trans_sigma_m**2 + cfg.odom_trans_sigma_m_per_sqrt_m**2 * length
+    var_yaw = (math.radians(cfg.odom_rot_sigma_deg) ** 2
+               + math.radians(cfg.odom_rot_sigma_deg_per_sqrt_m) ** 2 * length)
     prior_t, prior_yaw = cfg.prior_trans_sigma_m**2, math.radians(cfg.prior_rot_sigma_deg) ** 2
     assert cov[0, 0] == pytest.approx(prior_t + var_t, rel=1e-6)
     assert cov[1, 1] == pytest.approx(prior_t + var_t + length**2 * prior_yaw, rel=1e-6)

@@ -69,7 +69,8 @@ def test_the_estimate_carries_a_covariance_that_grows_between_updates(live_run) 
     assert steps
     for first, second in steps:
         length = np.linalg.norm(second.T_world_base[:2, 3] - first.T_world_base[:2, 3])
-        step_var = np.radians(backend.odom_rot_sigma_deg) ** 2 + np.radians(backend.odom_rot_sigma_deg_per_sqrt_m) ** 2 * length
+        step_var = (np.radians(backend.odom_rot_sigma_deg) ** 2
+                    + np.radians(backend.odom_rot_sigma_deg_per_sqrt_m) ** 2 * length)
         assert second.covariance[2, 2] - first.covariance[2, 2] == pytest.approx(step_var, rel=1e-6)
 
 
