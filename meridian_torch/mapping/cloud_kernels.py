@@ -64,12 +64,10 @@ def _hash(key: int, mask: int) -> int:
 
 
 @njit(cache=True, nogil=True)
-def _grid(points: np.ndarray, a: int, b: int, cell: float):
-    """Grid of rows a..b-1 with cells of `cell` metres, from the group's minimum corner.
-
-    Returns (minimum corner (3,), order: grid position -> row - a, cell index (n, 3) by grid
-    position, shape (3,), column start (m + 1,) in grid positions, hash table keys (H,) and
-    columns (H,))."""
+def _grid_cells(points: np.ndarray, a: int, b: int, cell: float):
+    """Rows a..b-1 sorted by cell of `cell` metres (x, then y, then z), from the group's minimum
+    corner: (minimum corner (3,), order: grid position -> row - a, cell index (n, 3) by grid
+    position, shape (3,))."""
     n, dims = b - a, points.shape[1]
     lo = np.zeros(3)
     for ax in range(dims):
@@ -85,7 +83,14 @@ def _grid(points: np.ndarray, a: int, b: int, cell: float):
             shape[ax] = max(shape[ax], c + 1)
     key = (raw[:, 0] * shape[1] + raw[:, 1]) * shape[2] + raw[:, 2]
     order = np.argsort(key)
-    cells = raw[order]
+    return lo, order, raw[order], shape
+
+
+@njit(cache=True, nogil=True)
+def _grid(points: np.ndarray, a: int, b: int, cell: float):
+    """`_grid_cells` and a hash table of its cell columns (x, y): (minimum corner, order, cells,
+    shape, column start (m + 1,) in grid positions, hash table keys (H,) and columns (H,))."""
+    lo, order, cells, shape = _grid_cells(points, a, b, cell)
     col_start = _run_starts(cells, 2)
     m = len(col_start) - 1
     size = 1
@@ -315,15 +320,25 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         a, b = starts[g], starts[g + 1]
         if b == a:
             continue
-        _, order, cells, shape, col_start, table_key, table_col = _grid(points, a, b, cell)
-        grid_points, grid_weight, z_of = points[a + order], weight[a + order], cells[:, 2].copy()
+        _, order, cells, shape = _grid_cells(points, a, b, cell)
+        grid_points, grid_weight = points[a + order], weight[a + order]
         m = b - a
         cell_start = _run_starts(cells, 3)
         n_cells = len(cell_start) - 1
         cell_of = np.empty(m, np.int64)
         for c in range(n_cells):
             cell_of[cell_start[c]: cell_start[c + 1]] = c
-        # neighbour cells (itself included), CSR; grown as needed (up to 125 a cell, ~25 on ground)
+        # neighbour cells (itself included), CSR; grown as needed (up to 125 a cell, ~25 on ground).
+        # Cells are sorted by key (x, y, z): the neighbours in column (x + dx, y + dy) are one run
+        # of keys, and its start only moves forward as the cells go up, so each of the 25 columns
+        # keeps a cursor (no hashing, memory read in order)
+        s1, s2 = shape[1], shape[2]
+        key = np.empty(n_cells, np.int64)
+        for c in range(n_cells):
+            p0 = cell_start[c]
+            key[c] = (cells[p0, 0] * s1 + cells[p0, 1]) * s2 + cells[p0, 2]
+        width = 2 * reach + 1
+        cursor = np.zeros(width * width, np.int64)
         nb_start = np.empty(n_cells + 1, np.int64)
         nb = np.empty(27 * n_cells, np.int64)
         n_nb = 0
@@ -331,20 +346,28 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
             nb_start[c] = n_nb
             p0 = cell_start[c]
             cx, cy, cz = cells[p0, 0], cells[p0, 1], cells[p0, 2]
-            for x in range(cx - reach, cx + reach + 1):
-                for y in range(cy - reach, cy + reach + 1):
-                    col = _column(table_key, table_col, shape, x, y)
-                    if col < 0:
+            z_lo, z_hi = max(cz - reach, 0), min(cz + reach, s2 - 1)
+            for i in range(width):
+                x = cx + i - reach
+                if x < 0 or x >= shape[0]:
+                    continue
+                for j in range(width):
+                    y = cy + j - reach
+                    if y < 0 or y >= s1:
                         continue
-                    q = _z_from(z_of, col_start[col], col_start[col + 1], cz - reach)
-                    while q < col_start[col + 1] and z_of[q] <= cz + reach:
+                    base = (x * s1 + y) * s2
+                    t = cursor[i * width + j]
+                    while t < n_cells and key[t] < base + z_lo:
+                        t += 1
+                    cursor[i * width + j] = t
+                    while t < n_cells and key[t] <= base + z_hi:
                         if n_nb == len(nb):
                             grown = np.empty(2 * len(nb), np.int64)
                             grown[:n_nb] = nb
                             nb = grown
-                        nb[n_nb] = cell_of[q]
+                        nb[n_nb] = t
                         n_nb += 1
-                        q = cell_start[cell_of[q] + 1]
+                        t += 1
         nb_start[n_cells] = n_nb
         # core points: weight of the own cell, then neighbours until min_points
         core = np.zeros(m, np.bool_)
