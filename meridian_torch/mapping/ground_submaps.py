@@ -35,10 +35,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import ConvexHull, QhullError
 
 from meridian_torch.config import GroundMapConfig
 from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
+from meridian_torch.mapping.cloud_kernels import group_any_within
 from meridian_torch.mapping.ground_observations import (
     group_largest_cluster,
     group_outlier_mask,
@@ -274,10 +275,17 @@ def artifact_line_mask(
         """(L*k,) whether each sample is within `dist` of a point of its own segment."""
         if len(points) == 0:
             return np.zeros(len(samples), dtype=bool)
-        gap = 1e6
-        both = separate_groups(np.concatenate([points, samples]), np.concatenate([groups, owner]), gap)
-        d, _ = cKDTree(both[: len(points)]).query(both[len(points) :], distance_upper_bound=dist)
-        return d <= dist
+        # the groups moved apart as for the former KD-tree over all segments (same coordinates,
+        # same decisions); the kernel searches each segment's points on their own grid
+        both = separate_groups(np.concatenate([points, samples]), np.concatenate([groups, owner]), 1e6)
+        by_point, by_sample = np.argsort(groups, kind="stable"), np.argsort(owner, kind="stable")
+        segments = np.arange(max(groups.max(), owner.max()) + 2)
+        found = group_any_within(
+            np.ascontiguousarray(both[len(points):][by_sample]), np.searchsorted(owner[by_sample], segments),
+            np.ascontiguousarray(both[: len(points)][by_point]), np.searchsorted(groups[by_point], segments), dist)
+        out = np.empty(len(samples), dtype=bool)
+        out[by_sample] = found
+        return out
 
     near_real = near(geometry.points_xy, geometry.point_segment).reshape(-1, k).mean(axis=1)
     clear = (~near(geometry.occluded_xy, geometry.occluded_segment)).reshape(-1, k).mean(axis=1)
