@@ -46,6 +46,7 @@ from meridian_torch.mapping.ground_observations import (
     group_voxel_downsample,
     separate_groups,
     voxel_hash,
+    voxel_unhash,
 )
 from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker, TrackedSegment
 from meridian_torch.mapping.primitives.conversion import segments_to_primitives
@@ -141,12 +142,13 @@ class SubmapGeometry:
     segment_ids: np.ndarray  # (S,) tracked segment ids
 
 
-def _shares_cell(xy: np.ndarray, others_xy: np.ndarray, grid_m: float) -> np.ndarray:
-    """(N,) whether each point of `xy` shares its `grid_m` x-y cell with a point of `others_xy`
-    (sorts the few cells of `xy`, not the many of `others_xy`)."""
-    cells = voxel_hash(xy, grid_m)
+def _shares_cell(xy: np.ndarray, groups: np.ndarray, others_xy: np.ndarray, others_groups: np.ndarray,
+                 grid_m: float) -> np.ndarray:
+    """(N,) whether each point of `xy` shares its `grid_m` x-y cell with a point of `others_xy` of
+    the same group (groups < 2^20: a 2D key's z field holds the group, keeping groups apart)."""
+    cells = voxel_hash(xy, grid_m) + groups
     unique = np.unique(cells)
-    other = voxel_hash(others_xy, grid_m)
+    other = voxel_hash(others_xy, grid_m) + others_groups
     pos = np.minimum(np.searchsorted(unique, other), len(unique) - 1)
     taken = np.zeros(len(unique), dtype=bool)
     taken[pos[unique[pos] == other]] = True
@@ -171,7 +173,7 @@ def submap_primitives(
 ) -> tuple[PrimitiveSet, SubmapGeometry]:
     """Primitives (odom x-y) of the segments cropped around `centre_xyz`, with their 2D geometry."""
     radius = cfg.submap_radius_m
-    pts_l, grp_l, occ_l, ogrp_l = [], [], [], []
+    pts_l, grp_l, ring_l, rgrp_l, occ_l, ogrp_l = [], [], [], [], [], []
     height = np.zeros(len(segments))
     # a segment whose box lies beyond the radius has no point inside; one whose box lies within
     # the inner ring has all points inside and none in the ring (no per-point distances needed)
@@ -183,32 +185,39 @@ def submap_primitives(
         if box_near[g] > radius + _BOX_SLACK_M or len(seg.points) == 0:
             continue
         if box_far[g] < radius - cfg.occluded_ring_m - _BOX_SLACK_M:
-            pts, ring = seg.points, seg.points[:0]
+            pts = seg.points
         else:
             d = np.linalg.norm(seg.points - centre_xyz, axis=1)
             inside = d <= radius
             if not inside.any():
                 continue
             pts = seg.points[inside]
-            ring = pts[d[inside] > radius - cfg.occluded_ring_m]
+            ring_l.append(pts[d[inside] > radius - cfg.occluded_ring_m, :2])
+            rgrp_l.append(np.full(len(ring_l[-1]), g))
         low, high = np.percentile(pts[:, 2], [5, 95])
         height[g] = high - low
-        occ = seg.occluded_points(occluded_voxel_m)
-        occ = occ[np.linalg.norm(occ - centre_xyz, axis=1) <= radius]
-        if len(occ):  # cleared where a real point shares the x-y cell
-            occ = occ[~_shares_cell(occ[:, :2], pts[:, :2], cfg.occluded_grid_m)]
         pts_l.append(pts[:, :2])
         grp_l.append(np.full(len(pts), g))
-        occ_xy = np.concatenate([occ[:, :2], ring[:, :2]])
-        occ_l.append(occ_xy)
-        ogrp_l.append(np.full(len(occ_xy), g))
+        occ_l.append(seg.occluded_keys)
+        ogrp_l.append(np.full(len(seg.occluded_keys), g))
     descriptor_dim = int(segments[0].descriptor_sum.shape[0]) if segments else 1
     if not pts_l:
         empty = SubmapGeometry(np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64),
                                np.zeros(0, np.int64))
         return PrimitiveSet.empty(descriptor_dim), empty
     pts, grp = np.concatenate(pts_l), np.concatenate(grp_l)
-    occ, ogrp = np.concatenate(occ_l), np.concatenate(ogrp_l)
+    # occluded points within the radius, cleared where a real point of their segment shares the
+    # x-y cell; the real points of the outer ring join them (after each segment's occluded ones)
+    occ, ogrp = voxel_unhash(np.concatenate(occ_l), occluded_voxel_m), np.concatenate(ogrp_l)
+    within = np.linalg.norm(occ - centre_xyz, axis=1) <= radius
+    occ, ogrp = occ[within, :2], ogrp[within]
+    if len(occ):
+        clear = ~_shares_cell(occ, ogrp, pts, grp, cfg.occluded_grid_m)
+        occ, ogrp = occ[clear], ogrp[clear]
+    if ring_l:
+        occ, ogrp = np.concatenate([occ, *ring_l]), np.concatenate([ogrp, *rgrp_l])
+        by_segment = np.argsort(ogrp, kind="stable")
+        occ, ogrp = occ[by_segment], ogrp[by_segment]
 
     # flatten along odom z, then clean every segment in one batch
     clean = cfg.flatten_cleanup
