@@ -239,11 +239,15 @@ def test_box_shortcuts_of_the_radius_crop_give_the_per_point_crop():
         assert torch.equal(getattr(prims, name), getattr(plain_prims, name))
 
 
-def test_shares_cell_equals_a_set_of_cells():
+def test_shares_cell_equals_a_set_of_group_cells():
     rng = np.random.default_rng(7)
-    xy = rng.uniform(0, 3, (200, 2))
-    others = rng.uniform(1, 5, (50, 2))
-    got = _shares_cell(xy, others, 0.25)
-    cells = set(voxel_hash(others, 0.25).tolist())
-    assert got.tolist() == [c in cells for c in voxel_hash(xy, 0.25).tolist()]
+    xy, groups = rng.uniform(0, 3, (200, 2)), rng.integers(0, 3, 200)
+    others, others_groups = rng.uniform(1, 5, (150, 2)), rng.integers(0, 3, 150)
+    got = _shares_cell(xy, groups, others, others_groups, 0.25)
+    cells = {(g, c) for g, c in zip(others_groups.tolist(), voxel_hash(others, 0.25).tolist())}
+    expected = [(g, c) in cells for g, c in zip(groups.tolist(), voxel_hash(xy, 0.25).tolist())]
+    assert got.tolist() == expected
+    # a cell shared only with other groups' points is not shared
+    ungrouped = set(voxel_hash(others, 0.25).tolist())
+    assert any(c in ungrouped and not e for c, e in zip(voxel_hash(xy, 0.25).tolist(), expected))
     assert 0 < got.sum() < len(got)
