@@ -331,13 +331,16 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         # neighbour cells (itself included), CSR; grown as needed (up to 125 a cell, ~25 on ground).
         # Cells are sorted by key (x, y, z): the neighbours in column (x + dx, y + dy) are one run
         # of keys, and its start only moves forward as the cells go up, so each of the 25 columns
-        # keeps a cursor (no hashing, memory read in order)
+        # keeps a cursor (no hashing, memory read in order); with one z layer (2D) the 5 columns
+        # of one dx are one run
         s1, s2 = shape[1], shape[2]
         key = np.empty(n_cells, np.int64)
         for c in range(n_cells):
             p0 = cell_start[c]
             key[c] = (cells[p0, 0] * s1 + cells[p0, 1]) * s2 + cells[p0, 2]
         width = 2 * reach + 1
+        flat = s2 == 1
+        n_runs = 1 if flat else width
         cursor = np.zeros(width * width, np.int64)
         nb_start = np.empty(n_cells + 1, np.int64)
         nb = np.empty(27 * n_cells, np.int64)
@@ -351,16 +354,19 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
                 x = cx + i - reach
                 if x < 0 or x >= shape[0]:
                     continue
-                for j in range(width):
-                    y = cy + j - reach
-                    if y < 0 or y >= s1:
-                        continue
-                    base = (x * s1 + y) * s2
+                for j in range(n_runs):
+                    if flat:  # one z layer: the 5 columns x, y - 2 .. y + 2 are one run of keys
+                        y_lo, y_hi = max(cy - reach, 0), min(cy + reach, s1 - 1)
+                    else:
+                        y_lo = y_hi = cy + j - reach
+                        if y_lo < 0 or y_lo >= s1:
+                            continue
                     t = cursor[i * width + j]
-                    while t < n_cells and key[t] < base + z_lo:
+                    while t < n_cells and key[t] < (x * s1 + y_lo) * s2 + z_lo:
                         t += 1
                     cursor[i * width + j] = t
-                    while t < n_cells and key[t] <= base + z_hi:
+                    last = (x * s1 + y_hi) * s2 + z_hi
+                    while t < n_cells and key[t] <= last:
                         if n_nb == len(nb):
                             grown = np.empty(2 * len(nb), np.int64)
                             grown[:n_nb] = nb
