@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from meridian_torch.config import GroundMapConfig, GroundTrackingConfig
@@ -251,3 +252,5 @@ def test_shares_cell_equals_a_set_of_group_cells():
     ungrouped = set(voxel_hash(others, 0.25).tolist())
     assert any(c in ungrouped and not e for c, e in zip(voxel_hash(xy, 0.25).tolist(), expected))
     assert 0 < got.sum() < len(got)
+    with pytest.raises(ValueError, match="groups"):  # the key's z field holds fewer
+        _shares_cell(xy, groups + (1 << 20), others, others_groups, 0.25)

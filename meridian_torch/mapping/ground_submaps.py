@@ -41,6 +41,7 @@ from meridian_torch.config import GroundMapConfig
 from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
 from meridian_torch.mapping.cloud_kernels import group_any_within
 from meridian_torch.mapping.ground_observations import (
+    VOXEL_INDEX_LIMIT,
     group_largest_cluster,
     group_outlier_mask,
     group_voxel_downsample,
@@ -146,6 +147,8 @@ def _shares_cell(xy: np.ndarray, groups: np.ndarray, others_xy: np.ndarray, othe
                  grid_m: float) -> np.ndarray:
     """(N,) whether each point of `xy` shares its `grid_m` x-y cell with a point of `others_xy` of
     the same group (groups < 2^20: a 2D key's z field holds the group, keeping groups apart)."""
+    if max(groups.max(initial=0), others_groups.max(initial=0)) >= VOXEL_INDEX_LIMIT:
+        raise ValueError(f"at most {VOXEL_INDEX_LIMIT} groups, got group {max(groups.max(), others_groups.max())}")
     cells = voxel_hash(xy, grid_m) + groups
     unique = np.unique(cells)
     other = voxel_hash(others_xy, grid_m) + others_groups
