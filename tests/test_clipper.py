@@ -456,6 +456,42 @@ def _sparse_case(case: str) -> tuple[int, tuple[torch.Tensor, torch.Tensor, torc
     return M.shape[0], (i, j, M[i, j]), cfg
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 60), st.floats(0.0, 1.0), st.floats(0.0, 50.0))
+def test_compiled_penalised_product_equals_the_row_by_row_sums(seed: int, n: int, zeros: float, d: float) -> None:
+    """The kernel's product scatters from the rows of u's nonzero entries; a plain pass over every
+    row (sums in column order, as the kernel did before) gives the same bits, zeros (+-0) in u
+    included."""
+    from meridian_torch.matching.clipper.kernels import _penalised_mv
+    from meridian_torch.matching.clipper.sparse import _symmetric_csr
+
+    rng = np.random.default_rng(seed)
+    i, j = np.triu_indices(n, 1)
+    keep = rng.random(len(i)) < rng.random()
+    M_off, _ = _symmetric_csr(n, torch.from_numpy(i[keep]), torch.from_numpy(j[keep]),
+                              torch.from_numpy(rng.uniform(0.01, 1.0, int(keep.sum()))))
+    crow, col, value = (t.numpy().astype(np.int64) if t.dtype != torch.float64 else t.numpy()
+                        for t in (M_off.crow_indices(), M_off.col_indices(), M_off.values()))
+    u = rng.random(n) * 10.0 ** rng.integers(-12, 1, n)
+    u[rng.random(n) < zeros] = 0.0
+    u[rng.random(n) < 0.1] = -0.0
+    out, scratch = np.empty(n), np.empty(n)
+    F = _penalised_mv(crow, col, value, d, u, out, scratch)
+    total = 0.0
+    for a in range(n):
+        total += u[a]
+    expected, F_expected = np.empty(n), 0.0
+    for a in range(n):
+        mu, pu = 0.0, 0.0
+        for k in range(crow[a], crow[a + 1]):
+            mu += value[k] * u[col[k]]
+            pu += u[col[k]]
+        expected[a] = mu + u[a] - d * (total - u[a] - pu)
+        F_expected += u[a] * expected[a]
+    assert np.array_equal(out.view(np.int64), expected.view(np.int64))  # bits, signs of zeros included
+    assert np.float64(F).view(np.int64) == np.float64(F_expected).view(np.int64)
+
+
 @pytest.mark.parametrize("case", ["noise0", "noise1", "noise2", "penalty_grows", "edgeless", "single"])
 def test_compiled_sparse_solve_takes_the_torch_solves_steps(case: str) -> None:
     """The compiled continuous solve (`kernels.sparse_homotopy`) against torch's loop: the same
