@@ -51,8 +51,8 @@ def _penalised_mv(crow: np.ndarray, col: np.ndarray, value: np.ndarray, d: float
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _ascend(crow: np.ndarray, col: np.ndarray, value: np.ndarray, d: float, u: np.ndarray, g: np.ndarray,
-            cand: np.ndarray, g_c: np.ndarray, pattern_u: np.ndarray, tol_u: float, noise: float, eps: float, tol_F: float, beta: float,
-            max_inner: int, max_line_search: int) -> tuple[float, int]:
+            cand: np.ndarray, g_c: np.ndarray, pattern_u: np.ndarray, tol_u: float, noise: float, eps: float,
+            tol_F: float, beta: float, max_inner: int, max_line_search: int) -> tuple[float, int]:
     """`ascent._ascend` for one problem: u and g (= Md u on return) are updated in place, cand, g_c
     and pattern_u are scratch. Returns (F, steps)."""
     n = u.shape[0]
