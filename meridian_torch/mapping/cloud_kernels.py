@@ -67,7 +67,7 @@ def _hash(key: int, mask: int) -> int:
 def _grid_cells(points: np.ndarray, a: int, b: int, cell: float):
     """Rows a..b-1 sorted by cell of `cell` metres (x, then y, then z), from the group's minimum
     corner: (minimum corner (3,), order: grid position -> row - a, cell index (n, 3) by grid
-    position, shape (3,))."""
+    position, shape (3,), cell key (x * shape[1] + y) * shape[2] + z (n,) by grid position)."""
     n, dims = b - a, points.shape[1]
     lo = np.zeros(3)
     for ax in range(dims):
@@ -83,14 +83,14 @@ def _grid_cells(points: np.ndarray, a: int, b: int, cell: float):
             shape[ax] = max(shape[ax], c + 1)
     key = (raw[:, 0] * shape[1] + raw[:, 1]) * shape[2] + raw[:, 2]
     order = np.argsort(key)
-    return lo, order, raw[order], shape
+    return lo, order, raw[order], shape, key[order]
 
 
 @njit(cache=True, nogil=True)
 def _grid(points: np.ndarray, a: int, b: int, cell: float):
     """`_grid_cells` and a hash table of its cell columns (x, y): (minimum corner, order, cells,
     shape, column start (m + 1,) in grid positions, hash table keys (H,) and columns (H,))."""
-    lo, order, cells, shape = _grid_cells(points, a, b, cell)
+    lo, order, cells, shape, _ = _grid_cells(points, a, b, cell)
     col_start = _run_starts(cells, 2)
     m = len(col_start) - 1
     size = 1
@@ -320,7 +320,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         a, b = starts[g], starts[g + 1]
         if b == a:
             continue
-        _, order, cells, shape = _grid_cells(points, a, b, cell)
+        _, order, cells, shape, point_key = _grid_cells(points, a, b, cell)
         grid_points, grid_weight = points[a + order], weight[a + order]
         m = b - a
         cell_start = _run_starts(cells, 3)
@@ -334,10 +334,7 @@ def group_dbscan_labels(points: np.ndarray, weight: np.ndarray, starts: np.ndarr
         # keeps a cursor (no hashing, memory read in order); with one z layer (2D) the 5 columns
         # of one dx are one run
         s1, s2 = shape[1], shape[2]
-        key = np.empty(n_cells, np.int64)
-        for c in range(n_cells):
-            p0 = cell_start[c]
-            key[c] = (cells[p0, 0] * s1 + cells[p0, 1]) * s2 + cells[p0, 2]
+        key = point_key[cell_start[:-1]]
         width = 2 * reach + 1
         flat = s2 == 1
         n_runs = 1 if flat else width
