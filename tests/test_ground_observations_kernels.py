@@ -21,6 +21,7 @@ from meridian_torch.mapping.cloud_kernels import (
     voxels_reached,
 )
 from meridian_torch.mapping.ground_observations import (
+    group_any_point_within,
     group_outlier_mask,
     separate_groups,
     voxel_hash,
@@ -309,6 +310,11 @@ def test_group_any_within_equals_kd_tree(seed, sizes, dims, radius, step):
     n = len(queries)
     within = group_any_within(both[:n], q_starts, both[n:], p_starts, radius)
     assert np.array_equal(within, _tree_within(both[:n], both[n:], radius))
+    # the same through `group_any_point_within` (the clearance's and the submap artefact test's
+    # entry), its groups in any order
+    qp, pp = rng.permutation(n), rng.permutation(len(points))
+    got = group_any_point_within(queries[qp], q_groups[qp], points[pp], p_groups[pp], radius)
+    assert np.array_equal(got, within[qp])
 
 
 def test_group_any_within_is_strict_on_the_squared_radius():

@@ -50,6 +50,7 @@ __all__ = [
     "group_voxel_runs",
     "group_unique",
     "group_voxel_downsample",
+    "group_any_point_within",
     "group_outlier_mask",
     "group_largest_cluster",
     "edge_band",
@@ -172,6 +173,25 @@ def separate_groups(points: np.ndarray, groups: np.ndarray, gap: float) -> np.nd
 def _group_starts(sorted_groups: np.ndarray) -> np.ndarray:
     """(G + 1,) first row of every group of a sorted group column, and the row count."""
     return np.r_[0, np.flatnonzero(sorted_groups[1:] != sorted_groups[:-1]) + 1, len(sorted_groups)]
+
+
+def group_any_point_within(queries: np.ndarray, query_groups: np.ndarray, points: np.ndarray,
+                           point_groups: np.ndarray, radius: float) -> np.ndarray:
+    """(Q,) whether some point of each query's group lies within `radius` of it (squared distance
+    < radius^2, as cKDTree's distance_upper_bound), on the groups moved apart as for the former
+    KD-tree (`separate_groups`: the same coordinates, hence the same decisions). Groups need not
+    be sorted."""
+    found = np.zeros(len(queries), dtype=bool)
+    if len(queries) == 0 or len(points) == 0:
+        return found
+    both = separate_groups(np.concatenate([queries, points]), np.concatenate([query_groups, point_groups]), 1e6)
+    by_query, by_point = np.argsort(query_groups, kind="stable"), np.argsort(point_groups, kind="stable")
+    bounds = np.arange(max(query_groups.max(), point_groups.max()) + 2)
+    found[by_query] = group_any_within(
+        np.ascontiguousarray(both[: len(queries)][by_query]), np.searchsorted(query_groups[by_query], bounds),
+        np.ascontiguousarray(both[len(queries):][by_point]), np.searchsorted(point_groups[by_point], bounds),
+        float(radius))
+    return found
 
 
 def group_outlier_mask(points: np.ndarray, groups: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
@@ -366,14 +386,8 @@ def frame_observations(
     band_pts, band_groups = group_voxel_downsample(band_pts, b_m.astype(np.int64), clean.voxel_m)
     occ, occ_groups = band_pts, band_groups
     real, real_groups = values[~deep, :3], groups[~deep]
-    if len(occ) and len(real) and cfg.occluded_clearance_m > 0:
-        # the groups moved apart as for the former KD-tree: the same coordinates give the same
-        # squared distances, hence the same points deleted. Both are sorted by group (voxel grid
-        # output, then filtered).
-        both = separate_groups(np.concatenate([real, occ]), np.concatenate([real_groups, occ_groups]), 1e6)
-        per_mask = np.arange(len(masks) + 1)
-        clear = ~group_any_within(both[: len(real)], np.searchsorted(real_groups, per_mask), both[len(real):],
-                                  np.searchsorted(occ_groups, per_mask), float(cfg.occluded_clearance_m))
+    if cfg.occluded_clearance_m > 0:
+        clear = ~group_any_point_within(real, real_groups, occ, occ_groups, cfg.occluded_clearance_m)
         real, real_groups = real[clear], real_groups[clear]
 
     # observations = masks with real points left; renumber 0..K-1

@@ -39,13 +39,12 @@ from scipy.spatial import ConvexHull, QhullError
 
 from meridian_torch.config import GroundMapConfig
 from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
-from meridian_torch.mapping.cloud_kernels import group_any_within
 from meridian_torch.mapping.ground_observations import (
     VOXEL_INDEX_LIMIT,
+    group_any_point_within,
     group_largest_cluster,
     group_outlier_mask,
     group_voxel_downsample,
-    separate_groups,
     voxel_hash,
     voxel_unhash,
 )
@@ -147,8 +146,9 @@ def _shares_cell(xy: np.ndarray, groups: np.ndarray, others_xy: np.ndarray, othe
                  grid_m: float) -> np.ndarray:
     """(N,) whether each point of `xy` shares its `grid_m` x-y cell with a point of `others_xy` of
     the same group (groups < 2^20: a 2D key's z field holds the group, keeping groups apart)."""
-    if max(groups.max(initial=0), others_groups.max(initial=0)) >= VOXEL_INDEX_LIMIT:
-        raise ValueError(f"at most {VOXEL_INDEX_LIMIT} groups, got group {max(groups.max(), others_groups.max())}")
+    largest = max(groups.max(initial=0), others_groups.max(initial=0))
+    if largest >= VOXEL_INDEX_LIMIT:
+        raise ValueError(f"at most {VOXEL_INDEX_LIMIT} groups, got group {largest}")
     cells = voxel_hash(xy, grid_m) + groups
     unique = np.unique(cells)
     other = voxel_hash(others_xy, grid_m) + others_groups
@@ -283,24 +283,11 @@ def artifact_line_mask(
     owner = np.repeat(parent[test], k)
     dist = cfg.artifact_dist_m
 
-    def near(points: np.ndarray, groups: np.ndarray) -> np.ndarray:
-        """(L*k,) whether each sample is within `dist` of a point of its own segment."""
-        if len(points) == 0:
-            return np.zeros(len(samples), dtype=bool)
-        # the groups moved apart as for the former KD-tree over all segments (same coordinates,
-        # same decisions); the kernel searches each segment's points on their own grid
-        both = separate_groups(np.concatenate([points, samples]), np.concatenate([groups, owner]), 1e6)
-        by_point, by_sample = np.argsort(groups, kind="stable"), np.argsort(owner, kind="stable")
-        segments = np.arange(max(groups.max(), owner.max()) + 2)
-        found = group_any_within(
-            np.ascontiguousarray(both[len(points):][by_sample]), np.searchsorted(owner[by_sample], segments),
-            np.ascontiguousarray(both[: len(points)][by_point]), np.searchsorted(groups[by_point], segments), dist)
-        out = np.empty(len(samples), dtype=bool)
-        out[by_sample] = found
-        return out
-
-    near_real = near(geometry.points_xy, geometry.point_segment).reshape(-1, k).mean(axis=1)
-    clear = (~near(geometry.occluded_xy, geometry.occluded_segment)).reshape(-1, k).mean(axis=1)
+    # each sample against the points of its own segment
+    near_real = group_any_point_within(samples, owner, geometry.points_xy, geometry.point_segment, dist)
+    near_occluded = group_any_point_within(samples, owner, geometry.occluded_xy, geometry.occluded_segment, dist)
+    near_real = near_real.reshape(-1, k).mean(axis=1)
+    clear = (~near_occluded).reshape(-1, k).mean(axis=1)
     keep[test] = (near_real >= cfg.artifact_min_near_fraction) & (clear >= cfg.artifact_min_clear_fraction)
     return keep
 
