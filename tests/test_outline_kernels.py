@@ -1,6 +1,7 @@
 """The outlines' compiled kernels (`mapping.primitives.outline_kernels`): the Delaunay triangulation
 against qhull and against the definition (no point inside a triangle's circumcircle), the alpha
-complex's boundary and its loops against their plain definitions. (Outlines from the compiled
+complex's boundary and its loops against their plain definitions, the convex hull against qhull's.
+(Outlines from the compiled
 triangulation against qhull's: tests/test_segment_to_primitives.py.)"""
 
 from __future__ import annotations
@@ -8,10 +9,15 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial import ConvexHull, Delaunay
+from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
-from meridian_torch.mapping.primitives.outline_kernels import alpha_boundary_edges, delaunay, simple_loops
+from meridian_torch.mapping.primitives.outline_kernels import (
+    alpha_boundary_edges,
+    convex_hull,
+    delaunay,
+    simple_loops,
+)
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -169,3 +175,37 @@ def test_alpha_boundary_edges_are_the_edges_of_exactly_one_kept_triangle():
         assert edges.tolist() == [list(e) for e in expected]
         checked += len(expected) > 0
     assert checked > 20
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1), n=st.integers(3, 400), lattice=st.booleans(), turn=st.sampled_from([0.0, 0.3]),
+    offset=st.sampled_from([0.0, 4321.7, -2999.95, 9876.5]),
+)
+def test_convex_hull_corners_are_qhulls_vertices(seed: int, n: int, lattice: bool, turn: float, offset: float):
+    """Random points, and pixel-centre lattices (many collinear points on the hull's sides, turned
+    or not) far from the origin as in a map frame: the corners are qhull's vertices, counter-clockwise."""
+    rng = np.random.default_rng(seed)
+    if lattice:
+        xy = np.unique((rng.integers(0, max(3, int(np.sqrt(n))), (n, 2)) + 0.5) * 0.3, axis=0)
+        xy = xy @ np.array([[np.cos(turn), np.sin(turn)], [-np.sin(turn), np.cos(turn)]])
+    else:
+        xy = rng.normal(0.0, rng.uniform(0.1, 30.0), (n, 2))
+    xy = xy + offset
+    try:
+        expected = set(ConvexHull(xy).vertices.tolist())
+    except QhullError:  # collinear lattice draws: qhull refuses them
+        assert len(convex_hull(xy)) < 3
+        return
+    corners = convex_hull(xy)
+    assert set(corners.tolist()) == expected and len(corners) == len(expected)
+    ring = xy[corners] - xy[corners].mean(0)
+    assert (_cross(np.roll(ring, -1, 0) - ring, np.roll(ring, -2, 0) - np.roll(ring, -1, 0)) > 0).all()
+
+
+def test_convex_hull_of_degenerate_input_has_fewer_than_three_corners():
+    line = np.stack([np.arange(10.0), 2.0 * np.arange(10.0)], 1)
+    for xy in (np.zeros((0, 2)), np.ones((1, 2)), np.zeros((5, 2)), line, line[::-1]):
+        assert len(convex_hull(xy)) < 3
+    assert len(convex_hull(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]))) == 3
+

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import ConvexHull, QhullError
 
 from meridian_torch.config import GroundMapConfig
 from meridian_torch.config.mapping import PrimitiveConfig, SubmapSpacingConfig
@@ -50,6 +49,8 @@ from meridian_torch.mapping.ground_observations import (
 )
 from meridian_torch.mapping.ground_tracking import SegmentStatus, SegmentTracker, TrackedSegment
 from meridian_torch.mapping.primitives.conversion import segments_to_primitives
+from meridian_torch.mapping.primitives.outline import signed_area
+from meridian_torch.mapping.primitives.outline_kernels import convex_hull
 from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = ["SubmapTrigger", "SubmapGeometry", "submap_primitives", "artifact_line_mask", "thin_by_distance"]
@@ -159,12 +160,8 @@ def _shares_cell(xy: np.ndarray, groups: np.ndarray, others_xy: np.ndarray, othe
 
 
 def _convex_hull_area(points: np.ndarray) -> float:
-    if len(points) < 3:
-        return 0.0
-    try:
-        return float(ConvexHull(points).volume)  # 2D: volume is the area
-    except QhullError:  # collinear
-        return 0.0
+    corners = convex_hull(points)
+    return abs(signed_area(points[corners])) if len(corners) >= 3 else 0.0  # 0 when collinear
 
 
 def submap_primitives(

@@ -7,7 +7,6 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from scipy.spatial import ConvexHull, QhullError
 
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.primitives.line_fusion import fuse_indexed_lines
@@ -17,6 +16,7 @@ from meridian_torch.mapping.primitives.outline import (
     signed_area,
     simplified_outline_edges,
 )
+from meridian_torch.mapping.primitives.outline_kernels import convex_hull
 from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = ["segments_to_primitives", "fit_circle"]
@@ -49,16 +49,25 @@ def fit_circle(points: np.ndarray) -> tuple[np.ndarray, float, float] | None:
 
 
 def _diameter(points: np.ndarray) -> float:
-    """Largest distance between two points (over the convex hull's vertices)."""
+    """Largest distance between two points (over the convex hull's corners)."""
     if len(points) < 2:
         return 0.0
-    try:
-        hull = points[ConvexHull(points).vertices]
-    except (QhullError, ValueError):  # collinear: the extent along the principal axis
+    corners = convex_hull(points)
+    if len(corners) < 3:  # collinear: the extent along the principal axis
         centred = points - points.mean(axis=0)
         t = centred @ np.linalg.svd(centred, full_matrices=False)[2][0]
         return float(t.max() - t.min())
+    hull = points[corners]
     return float(np.sqrt(((hull[:, None, :] - hull[None, :, :]) ** 2).sum(-1).max()))
+
+
+def _covariance(points: np.ndarray) -> np.ndarray:
+    """np.cov(points, rowvar=False, bias=True) of points (n, 2), n >= 1: its operations on the same
+    memory layouts, so the same bits (tested), without its argument handling, which was half of a
+    segment's principal-axes test."""
+    x = np.array(points, dtype=np.float64).T  # a copy, one variable per row
+    x -= x.mean(axis=1)[:, None]
+    return np.dot(x, x.T.conj()) * np.true_divide(1, x.shape[1])
 
 
 def _convert_segment(
@@ -85,7 +94,7 @@ def _convert_segment(
 
     if cfg.thin_line_max_minor_var_m2 > 0 and len(points) > 1:
         mean = points.mean(axis=0)
-        evals, evecs = np.linalg.eigh(np.cov(points - mean, rowvar=False, bias=True))
+        evals, evecs = np.linalg.eigh(_covariance(points - mean))
         if evals[0] < cfg.thin_line_max_minor_var_m2:
             t = (points - mean) @ evecs[:, 1]
             line = mean + np.outer([t.min(), t.max()], evecs[:, 1])

@@ -1,7 +1,7 @@
 """Compiled (numba) kernels of the alpha-shape outlines of segments (`outline.alpha_shape_outline`):
 the grid's cell means (`grid_means`), the band of cells near the border (`boundary_band`), the 2D
 Delaunay triangulation (`delaunay`), the boundary of the alpha complex (`alpha_boundary_edges`)
-and its walk into loops (`simple_loops`). As qhull, NumPy, OpenCV and Python code they took about
+and its walk into loops (`simple_loops`); and the convex hull (`convex_hull`). As qhull, NumPy, OpenCV and Python code they took about
 half of building an aerial patch, much of it in per-segment call overheads (a 60 m patch has ~75
 segments); every kernel but `delaunay` computes bit for bit what that code computed (tests against
 the plain definitions), and the maps named below are byte for byte the same.
@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["alpha_boundary_edges", "boundary_band", "delaunay", "grid_means", "simple_loops"]
+__all__ = ["alpha_boundary_edges", "boundary_band", "convex_hull", "delaunay", "grid_means", "simple_loops"]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -462,3 +462,41 @@ def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.n
     for e in range(n_edges):
         key[e] = ends[e, 0] * n_pts + ends[e, 1]
     return ends[np.argsort(key)]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _turns_left(xy: np.ndarray, a: int, b: int, c: int, tolerance: float) -> bool:
+    """Whether a -> b -> c turns counter-clockwise by more than the rounding of the coordinates'
+    differences can (`tolerance`: their rounding error per metre of the sides' lengths)."""
+    dx1, dy1 = xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]
+    dx2, dy2 = xy[c, 0] - xy[b, 0], xy[c, 1] - xy[b, 1]
+    return dx1 * dy2 - dy1 * dx2 > tolerance * (abs(dx1) + abs(dy1) + abs(dx2) + abs(dy2))
+
+
+@njit(cache=True, nogil=True)
+def convex_hull(xy: np.ndarray) -> np.ndarray:
+    """Indices of the convex hull's corners of points (n, 2), counter-clockwise (Andrew's monotone
+    chain). Points on a hull side are not corners, nor are turns within the rounding of the
+    coordinates (pixel centres of a straight side far from the origin), which qhull merges too;
+    fewer than 3 corners when the points are collinear so, or fewer than 3 distinct. qhull
+    (scipy's ConvexHull) took 40-650 us per segment, mostly per call."""
+    n = xy.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    tolerance = 16.0 * 2.220446049250313e-16 * np.abs(xy).max()
+    order = np.argsort(xy[:, 1], kind="mergesort")
+    order = order[np.argsort(xy[order, 0], kind="mergesort")]  # by x, then y
+    hull = np.empty(2 * n + 1, np.int64)
+    k = 0
+    for i in range(n):  # lower chain
+        while k >= 2 and not _turns_left(xy, hull[k - 2], hull[k - 1], order[i], tolerance):
+            k -= 1
+        hull[k] = order[i]
+        k += 1
+    lower = k + 1
+    for i in range(n - 2, -1, -1):  # upper chain
+        while k >= lower and not _turns_left(xy, hull[k - 2], hull[k - 1], order[i], tolerance):
+            k -= 1
+        hull[k] = order[i]
+        k += 1
+    return hull[: max(k - 1, 0)].copy()
