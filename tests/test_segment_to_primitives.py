@@ -16,7 +16,12 @@ from scipy.spatial import Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.mapping.primitives import line_fusion, outline
-from meridian_torch.mapping.primitives.conversion import fit_circle, segments_to_primitives
+from meridian_torch.mapping.primitives.conversion import (
+    _covariance,
+    _diameter,
+    fit_circle,
+    segments_to_primitives,
+)
 from meridian_torch.mapping.primitives.line_fusion import fuse_indexed_lines, fuse_lines, mergeable_line_pairs
 from meridian_torch.mapping.primitives.outline import (
     alpha_shape_outline,
@@ -387,6 +392,53 @@ def _fuse_full_sweeps(original, table, rows, cfg):
         groups = np.sort(remap[a])
         current[groups] = line_fusion._refit(original, label, groups)
     return current, table, rows, label
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_candidate_pairs_are_the_line_pairs_with_samples_within_the_radius(seed: int):
+    """The grid search's pairs equal every pair of lines with two samples within the search radius
+    (all sample pairs), also when only pairs touching some lines are asked for."""
+    rng = np.random.default_rng(seed)
+    n = 150
+    start = rng.uniform(0.0, 25.0, (n, 2)) + rng.choice([0.0, 3210.4])
+    angle = rng.uniform(0.0, np.pi, n)
+    length = rng.choice([0.3, 2.0, 12.0], n) * rng.uniform(0.8, 1.2, n)
+    ends = np.stack([start, start + length[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)], 1)
+    max_dist = CFG.line_merge_dist_m
+    h = 0.5 * max_dist
+    radius = (max_dist + h) * (1.0 + 1e-9)
+    samples, owner = line_fusion._line_samples(ends, h)
+    near = ((samples[:, None, :] - samples[None, :, :]) ** 2).sum(-1) <= radius * radius
+    a, b = np.nonzero(near)
+    every = {(int(min(i, j)), int(max(i, j))) for i, j in zip(owner[a], owner[b]) if i != j}
+    assert len(every) > 100  # the scene has neighbours
+    for query in (None, np.arange(0, n, 7), np.array([3])):
+        expected = every if query is None else {p for p in every if p[0] in set(query) or p[1] in set(query)}
+        pairs = line_fusion._candidate_pairs(ends, max_dist, query)
+        assert pairs.tolist() == sorted(map(list, expected))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), offset=st.sampled_from([0.0, 4321.7]))
+def test_principal_axes_covariance_is_numpys_bit_for_bit(seed: int, n: int, offset: float):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(0.0, rng.uniform(0.1, 20.0), (n, 2)) * rng.uniform(0.05, 1.0, 2) + offset
+    centred = points - points.mean(axis=0)
+    assert _covariance(centred).tobytes() == np.cov(centred, rowvar=False, bias=True).tobytes()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 200), offset=st.sampled_from([0.0, 4321.7]))
+def test_diameter_is_the_largest_distance_of_any_two_points(seed: int, n: int, offset: float):
+    """Bit for bit over the hull's corners; collinear points (two here) take the extent along
+    their principal axis, equal to rounding."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(0.0, rng.uniform(0.1, 20.0), (n, 2)) + offset
+    every = float(np.sqrt(((points[:, None, :] - points[None, :, :]) ** 2).sum(-1).max()))
+    if n == 2:
+        assert _diameter(points) == pytest.approx(every, rel=1e-9, abs=1e-9)
+    else:
+        assert _diameter(points) == every
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from meridian_torch.config.mapping import PrimitiveConfig
 from meridian_torch.geometry.segments import closest_point_on_segment
+from meridian_torch.mapping.primitives.line_fusion_kernels import near_line_pairs
 
 __all__ = ["fuse_lines", "fuse_indexed_lines", "mergeable_line_pairs"]
 
@@ -40,23 +40,10 @@ def _candidate_pairs(endpoints: np.ndarray, max_dist: float, query: np.ndarray |
     h = 0.5 * max_dist
     radius = (max_dist + h) * (1.0 + 1e-9)
     samples, owner = _line_samples(endpoints, h)
-    tree = cKDTree(samples)
-    sub = None
+    is_query = np.zeros(0 if query is None else n, dtype=bool)
     if query is not None:
-        is_query = np.zeros(n, dtype=bool)
         is_query[query] = True
-        sub = np.flatnonzero(is_query[owner])
-    if sub is not None and 4 * len(sub) < len(samples):  # few query samples: search from them only
-        found = cKDTree(samples[sub]).sparse_distance_matrix(tree, radius, output_type="ndarray")
-        a, b = owner[sub[found["i"]]], owner[found["j"]]
-    else:
-        sample_pairs = tree.query_pairs(radius, output_type="ndarray")
-        a, b = owner[sample_pairs[:, 0]], owner[sample_pairs[:, 1]]
-        if sub is not None:
-            touch = is_query[a] | is_query[b]
-            a, b = a[touch], b[touch]
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    key = np.unique(lo[lo != hi] * n + hi[lo != hi])
+    key = near_line_pairs(samples, owner, n, radius, is_query)
     return np.stack([key // n, key % n], axis=1)
 
 
