@@ -11,105 +11,10 @@ from skimage.segmentation import slic
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.perception.classical.felzenszwalb import felzenszwalb
 from meridian_torch.perception.classical.pixel_features import check_images
+from meridian_torch.perception.classical.region_merging import merge_regions
 from meridian_torch.perception.protocols import Segmentation
 
 __all__ = ["ClassicalSegmenter"]
-
-
-class _RegionGraph:
-    """Region statistics and adjacency of a label image, merged in place by union steps.
-
-    Per region: pixel count and sums of the per-pixel features (Lab and local contrast).
-    Per undirected edge: the shared border length (pixel pairs) and the summed colour step
-    across it. Merging only aggregates these sums, so it never touches the pixels again.
-    """
-
-    def __init__(self, labels: np.ndarray, feats: np.ndarray, pixel_step: tuple[np.ndarray, np.ndarray]):
-        n = int(labels.max()) + 1
-        flat = labels.ravel()
-        self.count = np.bincount(flat, minlength=n).astype(np.float64)
-        self.sums = np.stack(
-            [np.bincount(flat, weights=feats[..., c].ravel(), minlength=n) for c in range(feats.shape[-1])], axis=1
-        )
-        # Horizontal and vertical 4-neighbour pixel pairs whose labels differ are the borders.
-        step_h, step_v = pixel_step
-        a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
-        b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
-        s = np.concatenate([step_h.ravel(), step_v.ravel()])
-        cross = a != b
-        self.edges = np.zeros((0, 2), dtype=np.int64)
-        self.border_len = np.zeros(0)
-        self.border_step = np.zeros(0)
-        self._set_edges(a[cross], b[cross], np.ones(int(cross.sum())), s[cross])
-
-    @property
-    def num_regions(self) -> int:
-        return self.count.shape[0]
-
-    def _set_edges(self, a: np.ndarray, b: np.ndarray, length: np.ndarray, step: np.ndarray) -> None:
-        lo, hi = np.minimum(a, b).astype(np.int64), np.maximum(a, b).astype(np.int64)
-        keep = lo != hi
-        key = lo[keep] * self.num_regions + hi[keep]
-        uniq, inv = np.unique(key, return_inverse=True)
-        self.edges = np.stack([uniq // self.num_regions, uniq % self.num_regions], axis=1)
-        self.border_len = np.bincount(inv, weights=length[keep], minlength=uniq.size)
-        self.border_step = np.bincount(inv, weights=step[keep], minlength=uniq.size)
-
-    def dissimilarity(self, lightness_weight: float, texture_weight: float, boundary_weight: float) -> np.ndarray:
-        """(E,) edge weights in Lab units: mean-colour distance + texture + border colour step."""
-        mean = self.sums / self.count[:, None]
-        d = mean[self.edges[:, 0]] - mean[self.edges[:, 1]]
-        colour = np.sqrt((lightness_weight * d[:, 0]) ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
-        return colour + texture_weight * np.abs(d[:, 3]) + boundary_weight * self.border_step / self.border_len
-
-    def merge(self, chosen: np.ndarray) -> np.ndarray:
-        """Union the endpoints of the chosen edges; returns the old-to-new region index map."""
-        n = self.num_regions
-        m, comp = _connected_labels(self.edges[chosen], n)
-        self.count = np.bincount(comp, weights=self.count, minlength=m)
-        self.sums = np.stack([np.bincount(comp, weights=self.sums[:, c], minlength=m) for c in range(self.sums.shape[1])], 1)
-        # num_regions now reports the merged count, which _set_edges uses to encode pairs.
-        self._set_edges(comp[self.edges[:, 0]], comp[self.edges[:, 1]], self.border_len, self.border_step)
-        return comp
-
-
-def _connected_labels(pairs: np.ndarray, n: int) -> tuple[int, np.ndarray]:
-    """Connected components of nodes 0..n-1 joined by `pairs` (E, 2): (count, (n,) labels).
-
-    Labels are numbered in the order of each component's smallest node, as scipy's
-    connected_components numbers them; union by hooking each root under the smallest root it
-    meets, then pointer jumping, in array steps (cheaper than a sparse matrix for a few hundred
-    regions).
-    """
-    root = np.arange(n)
-    a, b = pairs[:, 0], pairs[:, 1]
-    while True:
-        ra, rb = root[a], root[b]
-        apart = ra != rb
-        if not apart.any():
-            break
-        ra, rb = ra[apart], rb[apart]
-        np.minimum.at(root, np.maximum(ra, rb), np.minimum(ra, rb))
-        while True:  # point every node at its root; roots only ever point at smaller nodes
-            up = root[root]
-            if np.array_equal(up, root):
-                break
-            root = up
-    # Each component's root is its smallest node (nothing points upwards), so roots in
-    # increasing order number the components as scipy does.
-    is_root = root == np.arange(n)
-    return int(is_root.sum()), (np.cumsum(is_root) - 1)[root]
-
-
-def _best_edge_per_region(edges: np.ndarray, weight: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """For every region with at least one edge: (region ids, index of its lowest-weight edge)."""
-    node = np.concatenate([edges[:, 0], edges[:, 1]])
-    eidx = np.concatenate([np.arange(len(edges)), np.arange(len(edges))])
-    order = np.lexsort((weight[eidx], node))
-    node, eidx = node[order], eidx[order]
-    first = np.ones(len(node), dtype=bool)
-    first[1:] = node[1:] != node[:-1]
-    return node[first], eidx[first]
 
 
 class ClassicalSegmenter:
@@ -253,43 +158,16 @@ class ClassicalSegmenter:
         wl = np.array([self.lightness_weight, 1.0, 1.0], dtype=np.float32)
         step_h = np.linalg.norm((smooth[:, 1:] - smooth[:, :-1]) * wl, axis=-1)
         step_v = np.linalg.norm((smooth[1:] - smooth[:-1]) * wl, axis=-1)
-        graph = _RegionGraph(labels, feats, (step_h, step_v))
-        lut = np.arange(graph.num_regions)
+        lut, edges, weight, border_len = merge_regions(
+            labels, feats, step_h, step_v, self.lightness_weight, self.texture_weight, self.boundary_weight,
+            self.merge_threshold, self.merge_levels, min_px,
+        )
+        return lut[labels], self._scores(int(lut.max()) + 1, edges, weight, border_len)
 
-        # Hierarchical merging: at each level, every region joins its most similar neighbour
-        # while that similarity is under the level's threshold (a Boruvka step), repeated to
-        # convergence; low thresholds first so the most similar regions join before chains form.
-        for level in range(1, self.merge_levels + 1):
-            tau = self.merge_threshold * level / self.merge_levels
-            while len(graph.edges):
-                weight = self._weights(graph)
-                _, best = _best_edge_per_region(graph.edges, weight, graph.num_regions)
-                chosen = best[weight[best] < tau]
-                if chosen.size == 0:
-                    break
-                lut = graph.merge(chosen)[lut]
-
-        # Regions below the minimum area join their most similar neighbour whatever the weight.
-        while len(graph.edges):
-            weight = self._weights(graph)
-            node, best = _best_edge_per_region(graph.edges, weight, graph.num_regions)
-            chosen = best[graph.count[node] < min_px]
-            if chosen.size == 0:
-                break
-            lut = graph.merge(np.unique(chosen))[lut]
-
-        return lut[labels], self._scores(graph)
-
-    def _weights(self, graph: _RegionGraph) -> np.ndarray:
-        return graph.dissimilarity(self.lightness_weight, self.texture_weight, self.boundary_weight)
-
-    def _scores(self, graph: _RegionGraph) -> np.ndarray:
+    def _scores(self, n: int, edges: np.ndarray, weight: np.ndarray, length: np.ndarray) -> np.ndarray:
         """Border contrast per region in [0, 1): 1 - exp(-mean neighbour dissimilarity / threshold)."""
-        n = graph.num_regions
-        if len(graph.edges) == 0:
+        if len(edges) == 0:
             return np.ones(n, dtype=np.float32)
-        weight = self._weights(graph)
-        e, length = graph.edges, graph.border_len
-        num = np.bincount(e.ravel(), weights=np.repeat(weight * length, 2), minlength=n)
-        den = np.bincount(e.ravel(), weights=np.repeat(length, 2), minlength=n)
+        num = np.bincount(edges.ravel(), weights=np.repeat(weight * length, 2), minlength=n)
+        den = np.bincount(edges.ravel(), weights=np.repeat(length, 2), minlength=n)
         return (1.0 - np.exp(-num / np.maximum(den, 1e-9) / self.merge_threshold)).astype(np.float32)
