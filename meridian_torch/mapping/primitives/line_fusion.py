@@ -159,7 +159,7 @@ def mergeable_line_pairs(
     similarity >= `line_merge_semantic_sim`; gap between the segments < `line_merge_dist_m`;
     nearly parallel lines (|sin| < 1e-3): B's first endpoint within `line_merge_perp_dist_m` of
     line A; otherwise the segments' closest points each within that distance of the other line.
-    Vectorized over the candidate pairs of a KD-tree (a superset of the pairs closer than the gap
+    Vectorized over the candidate pairs of a grid search (a superset of the pairs closer than the gap
     limit), never over all N^2 pairs.
     """
     endpoints = np.asarray(endpoints, dtype=np.float64).reshape(-1, 2, 2)
