@@ -1,5 +1,5 @@
-"""Union-find root lookup for the compiled (numba) kernels: the Felzenszwalb segmentation and the
-grid DBSCAN of grouped point clouds share it."""
+"""Union-find root lookup for the compiled (numba) kernels: the Felzenszwalb segmentation, the
+classical segmenter's region merging and the grid DBSCAN of grouped point clouds share it."""
 
 from __future__ import annotations
 

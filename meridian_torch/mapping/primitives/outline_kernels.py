@@ -1,10 +1,12 @@
 """Compiled (numba) kernels of the alpha-shape outlines of segments (`outline.alpha_shape_outline`):
 the grid's cell means (`grid_means`), the band of cells near the border (`boundary_band`), the 2D
 Delaunay triangulation (`delaunay`), the boundary of the alpha complex (`alpha_boundary_edges`)
-and its walk into loops (`simple_loops`); and the convex hull (`convex_hull`). As qhull, NumPy, OpenCV and Python code they took about
+and its walk into loops (`simple_loops`). As qhull, NumPy, OpenCV and Python code they took about
 half of building an aerial patch, much of it in per-segment call overheads (a 60 m patch has ~75
 segments); every kernel but `delaunay` computes bit for bit what that code computed (tests against
-the plain definitions), and the maps named below are byte for byte the same.
+the plain definitions), and the maps named below are byte for byte the same. Also here: the convex
+hull of a segment's points (`convex_hull`, for its diameter and a ground segment's area): qhull's
+vertices, turns within the coordinates' rounding merged as qhull merges them.
 
 qhull (scipy.spatial.Delaunay) triangulates in any dimension through a lifted convex hull and
 costs 4-9 us per point plus ~0.2 ms per call; an aerial 60 m patch triangulates ~75 outlines

@@ -15,6 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
+from meridian_torch.core.union_find import find_root
+
 __all__ = ["merge_regions"]
 
 
@@ -93,20 +95,13 @@ def _components(edges: np.ndarray, chosen: np.ndarray, n: int) -> tuple[int, np.
     each component's smallest region (as scipy's connected_components)."""
     parent = np.arange(n)
     for c in chosen:
-        u, v = edges[c, 0], edges[c, 1]
-        while parent[u] != u:
-            u = parent[u]
-        while parent[v] != v:
-            v = parent[v]
+        u, v = find_root(parent, edges[c, 0]), find_root(parent, edges[c, 1])
         if u != v:  # the smaller root stays a root: every component's root is its smallest region
             parent[max(u, v)] = min(u, v)
     comp = np.empty(n, np.int64)
     m = 0
     for i in range(n):
-        root = i
-        while parent[root] != root:
-            root = parent[root]
-        parent[i] = root
+        root = find_root(parent, i)
         if root == i:
             comp[i] = m
             m += 1
