@@ -10,6 +10,7 @@ bitwise equal. The Ray tests skip when ray (extra 'distributed') is not installe
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import numpy as np
@@ -152,6 +153,21 @@ def test_local_workers_open_the_file_themselves(ortho_files, reference_map) -> N
         built = build_aerial_map(source, _mapper("aerial_map.workers=2"))
         assert source._opened is None, "the parent read no pixels: the workers did"
     assert_identical(built, reference_map)
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="counts open descriptors in /proc/self/fd (Linux)")
+def test_results_kept_from_local_workers_hold_no_file_descriptors(ortho_files) -> None:
+    """Tensors sent back through the pool would each hold a shared-memory descriptor open while kept
+    (a 4 km^2 map in memory exhausted a 20 000 limit); the kept results must hold none."""
+    mapper = _mapper("aerial_map.workers=2", "aerial_map.batch_size=1")
+    with open_orthophoto(ortho_files["tif"]) as source:
+        grid = aerial_map_module._patch_grid(source, mapper)
+        kept: dict = {}
+        before = len(os.listdir("/proc/self/fd"))
+        aerial_map_module._describe_missing(source, mapper, grid, set(), kept.__setitem__, None)
+        after = len(os.listdir("/proc/self/fd"))
+    assert len(kept) == len(grid) >= 4
+    assert after - before < len(grid), f"{after - before} descriptors left open by {len(grid)} kept patches"
 
 
 def test_interrupted_file_build_resumes_with_other_workers(ortho_files, reference_map, tmp_path: Path) -> None:

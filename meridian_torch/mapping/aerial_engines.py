@@ -21,6 +21,7 @@ same blocks and yields their results in block order, so the map does not depend 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import multiprocessing
 from collections import deque
@@ -83,9 +84,26 @@ def _init_worker(ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: 
     _worker = _BlockDescriber(ortho, grid, mapper)
 
 
-def _describe_in_worker(indices: np.ndarray) -> BlockResult:
+_ArrayResult = list[tuple[dict[str, np.ndarray], np.ndarray]]  # a BlockResult as NumPy arrays
+
+
+def _describe_in_worker(indices: np.ndarray) -> _ArrayResult:
+    """A block described in a pool worker, returned as arrays: tensors sent through the pool travel
+    as shared-memory file descriptors, one per tensor, held open as long as the receiver keeps the
+    tensor, so a caller holding a whole map (`build_aerial_map`, 4 km^2: about 35 000 tensors) ran
+    out of descriptors. Arrays travel by value."""
     assert _worker is not None, "worker not initialized"
-    return _worker.describe(indices)
+    return [
+        ({f.name: getattr(prims, f.name).numpy() for f in dataclasses.fields(prims)}, global_desc.numpy())
+        for prims, global_desc in _worker.describe(indices)
+    ]
+
+
+def _from_arrays(block: _ArrayResult) -> BlockResult:
+    return [
+        (PrimitiveSet(**{name: torch.from_numpy(a) for name, a in arrays.items()}), torch.from_numpy(global_desc))
+        for arrays, global_desc in block
+    ]
 
 
 def _local_blocks(
@@ -107,7 +125,7 @@ def _local_blocks(
         while ahead:
             awaited = ahead.popleft()
             ahead.extend(pool.submit(_describe_in_worker, b) for b in itertools.islice(remaining, 1))
-            yield awaited.result()
+            yield _from_arrays(awaited.result())
     finally:  # interrupted (Ctrl-C, an error while saving): drop the blocks not started
         pool.shutdown(wait=True, cancel_futures=True)
 
