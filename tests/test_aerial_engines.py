@@ -229,6 +229,29 @@ def test_ray_builds_the_local_map(ray_cluster, ortho_files, reference_map, tmp_p
     assert ray_cluster.is_initialized(), "a cluster the caller started is left running"
 
 
+def test_ray_results_come_in_block_order_from_every_actor(ray_cluster) -> None:
+    """More blocks than the actors' slots, finishing out of order: every block once, in order, and
+    both actors did work (they get the next block as slots free, not one block each)."""
+    from meridian_torch.mapping.aerial_engines import _in_order
+
+    class Echo:
+        def describe(self, indices: np.ndarray) -> list:
+            import os
+            import time
+
+            time.sleep(0.02 * (int(indices[0]) % 3))
+            return [(int(indices[0]), os.getpid())]
+
+    actors = [ray_cluster.remote(num_cpus=1)(Echo).remote() for _ in range(2)]
+    try:
+        results = list(_in_order(ray_cluster, actors, [np.array([i]) for i in range(11)]))
+    finally:
+        for actor in actors:
+            ray_cluster.kill(actor)
+    assert [block[0][0] for block in results] == list(range(11))
+    assert len({block[0][1] for block in results}) == 2
+
+
 @pytest.mark.parametrize("resume_engine", ["ray", "local"])
 def test_interrupted_ray_build_resumes(ray_cluster, ortho_files, reference_map, tmp_path: Path,
                                        resume_engine: str) -> None:

@@ -12,9 +12,10 @@ same blocks and yields their results in block order, so the map does not depend 
   bounded by the workers, not by the map).
 - ray: one actor per worker holding the orthophoto, the grid and the mapper (neural back ends
   load their weights once per actor; an actor takes a GPU when the mapper's device is CUDA),
-  blocks dispatched to whichever actor is free (an actor is free again once its result is taken, in
-  order, so results held are bounded by the actors); at most as many actors as the cluster has CPUs
-  (GPUs). Without `aerial_map.ray_address` a local cluster with `workers` CPUs is started (and
+  each actor holding up to two blocks (queued in its mailbox) so that it never waits for the
+  driver; finished blocks wait for the one before them, at most two per actor in flight or
+  waiting (as in the local pool), so results held are bounded by the actors; at most as many
+  actors as the cluster has CPUs (GPUs). Without `aerial_map.ray_address` a local cluster with `workers` CPUs is started (and
   stopped afterwards); with it, the running cluster is joined. A Ray session already initialised
   by the caller is used as it is. Ray is imported only here.
 """
@@ -130,12 +131,42 @@ def _local_blocks(
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+def _in_order(ray, actors: list, blocks: list[np.ndarray], depth: int = 2) -> Iterator[BlockResult]:
+    """The actors' results of `blocks`, in block order: depth x actors blocks are in flight or
+    waiting for the one before them, and each block taken frees a slot for the actor with the
+    fewest blocks queued. (Ray's ActorPool frees an actor only once its result is taken in order,
+    so an actor that finished early idled behind a slower one: 14.5 % longer than the local
+    workers for 4 km^2.)"""
+    pending: dict = {}  # result ref -> (block number, actor)
+    finished: dict[int, object] = {}  # block number -> its result ref, done but not yet yielded
+    submitted = 0
+
+    def submit(actor) -> None:
+        nonlocal submitted
+        ref = actor.describe.remote(blocks[submitted])
+        pending[ref] = (submitted, actor)
+        submitted += 1
+
+    for _ in range(depth):  # round robin: the first blocks run side by side
+        for actor in actors:
+            if submitted < len(blocks):
+                submit(actor)
+    for number in range(len(blocks)):
+        while number not in finished:
+            (ref,), _ = ray.wait(list(pending), num_returns=1)
+            finished[pending.pop(ref)[0]] = ref
+        result = ray.get(finished.pop(number))
+        if submitted < len(blocks):  # the slot just freed goes to the actor with the fewest blocks queued
+            queued = [actor for _, actor in pending.values()]
+            submit(min(actors, key=queued.count))
+        yield result
+
+
 def _ray_blocks(
     ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, blocks: list[np.ndarray]
 ) -> Iterator[BlockResult]:
     try:
         import ray
-        from ray.util import ActorPool
     except ImportError as e:
         raise ConfigError(
             "aerial_map.engine = 'ray' needs Ray, which is not installed: pip install -e '.[distributed]'"
@@ -170,7 +201,7 @@ def _ray_blocks(
         actor_class = ray.remote(num_cpus=1, num_gpus=gpus)(_BlockDescriber)
         state = [ray.put(v) for v in (ortho, grid, mapper)]  # stored once, shared by the actors
         actors = [actor_class.remote(*state) for _ in range(min(aerial.workers, len(blocks), capacity))]
-        yield from ActorPool(actors).map(lambda actor, indices: actor.describe.remote(indices), blocks)
+        yield from _in_order(ray, actors, blocks)
     finally:  # finished or interrupted: the actors (and a cluster started here) go
         for actor in actors:
             ray.kill(actor)
