@@ -12,12 +12,12 @@ same blocks and yields their results in block order, so the map does not depend 
   bounded by the workers, not by the map).
 - ray: one actor per worker holding the orthophoto, the grid and the mapper (neural back ends
   load their weights once per actor; an actor takes a GPU when the mapper's device is CUDA),
-  each actor holding up to two blocks (queued in its mailbox) so that it never waits for the
-  driver; finished blocks wait for the one before them, at most two per actor in flight or
-  waiting (as in the local pool), so results held are bounded by the actors; at most as many
-  actors as the cluster has CPUs (GPUs). Without `aerial_map.ray_address` a local cluster with `workers` CPUs is started (and
-  stopped afterwards); with it, the running cluster is joined. A Ray session already initialised
-  by the caller is used as it is. Ray is imported only here.
+  each actor holding up to two blocks (queued in its mailbox) so that it does not wait for the
+  driver; finished blocks wait for the one before them, two blocks per actor in flight or waiting
+  in all (as in the local pool), so results held are bounded by the actors; at most as many
+  actors as the cluster has CPUs (GPUs). Without `aerial_map.ray_address` a local cluster with
+  `workers` CPUs is started (and stopped afterwards); with it, the running cluster is joined. A
+  Ray session already initialised by the caller is used as it is. Ray is imported only here.
 """
 
 from __future__ import annotations
@@ -101,6 +101,7 @@ def _describe_in_worker(indices: np.ndarray) -> _ArrayResult:
 
 
 def _from_arrays(block: _ArrayResult) -> BlockResult:
+    """A pool worker's arrays as the block's primitives and global descriptors again."""
     return [
         (PrimitiveSet(**{name: torch.from_numpy(a) for name, a in arrays.items()}), torch.from_numpy(global_desc))
         for arrays, global_desc in block
