@@ -1,8 +1,7 @@
 """The outlines' compiled kernels (`mapping.primitives.outline_kernels`): the Delaunay triangulation
 against qhull and against the definition (no point inside a triangle's circumcircle), the alpha
 complex's boundary and its loops against their plain definitions, the convex hull against qhull's.
-(Outlines from the compiled
-triangulation against qhull's: tests/test_segment_to_primitives.py.)"""
+(Outlines from the compiled triangulation against qhull's: tests/test_segment_to_primitives.py.)"""
 
 from __future__ import annotations
 
