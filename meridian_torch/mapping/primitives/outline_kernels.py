@@ -37,6 +37,8 @@ import math
 import numpy as np
 from numba import njit
 
+from meridian_torch.core.dense_ranks import dense_ranks
+
 __all__ = ["alpha_boundary_edges", "boundary_band", "convex_hull", "delaunay", "grid_means", "simple_loops"]
 
 
@@ -351,14 +353,7 @@ def grid_means(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.ndarra
         cells[i, 1] = np.int64(math.floor(points[i, 1] / grid_m))
     lo_x, lo_y = cells[:, 0].min(), cells[:, 1].min()
     width = cells[:, 1].max() - lo_y + 1
-    key = (cells[:, 0] - lo_x) * width + (cells[:, 1] - lo_y)
-    order = np.argsort(key, kind="mergesort")
-    slot = np.empty(n, np.int64)
-    n_cells = 0
-    for r in range(n):
-        if r == 0 or key[order[r]] != key[order[r - 1]]:
-            n_cells += 1
-        slot[order[r]] = n_cells - 1
+    slot, n_cells = dense_ranks((cells[:, 0] - lo_x) * width + (cells[:, 1] - lo_y))
     sums = np.zeros((n_cells, 2))
     counts = np.zeros(n_cells, np.int64)
     out_cells = np.empty((n_cells, 2), np.int64)

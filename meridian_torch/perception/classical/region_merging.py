@@ -15,6 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
+from meridian_torch.core.dense_ranks import dense_ranks
 from meridian_torch.core.union_find import find_root
 
 __all__ = ["merge_regions"]
@@ -37,13 +38,7 @@ def _set_edges(
             source[k] = i
             k += 1
     key, source = key[:k], source[:k]
-    order = np.argsort(key, kind="mergesort")
-    unique_of = np.empty(k, np.int64)
-    n_edges = 0
-    for r in range(k):
-        if r == 0 or key[order[r]] != key[order[r - 1]]:
-            n_edges += 1
-        unique_of[order[r]] = n_edges - 1
+    unique_of, n_edges = dense_ranks(key)
     edges = np.empty((n_edges, 2), np.int64)
     border_len = np.zeros(n_edges)
     border_step = np.zeros(n_edges)
@@ -83,7 +78,7 @@ def _best_edges(edges: np.ndarray, weight: np.ndarray, n: int) -> tuple[np.ndarr
         for e in range(edges.shape[0]):
             u = edges[e, side]
             b = best[u]
-            if b < 0 or weight[e] < weight[b] or (math.isnan(weight[b]) and not math.isnan(weight[e])):
+            if b < 0 or weight[e] < weight[b]:
                 best[u] = e
     nodes = np.flatnonzero(best >= 0)
     return nodes, best[nodes]
