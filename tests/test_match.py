@@ -87,6 +87,29 @@ def test_match_submap_recovers_transform(prior: float | None) -> None:
     assert torch.equal(hyp.T_world_odom, again.T_world_odom) and torch.equal(hyp.probability, again.probability)
 
 
+def test_particles_start_by_rotation_mode(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The sampler starts at `start_scale` with a rotation prior and `start_scale_free_rotation`
+    # without one, in every patch group; the other particle settings are the config's.
+    import meridian_torch.matching.match as match_module
+
+    seen = []
+    original = match_module.sample_problem
+
+    def spy(problem, cfg, seeds):
+        seen.append(cfg)
+        return original(problem, cfg, seeds)
+
+    monkeypatch.setattr(match_module, "sample_problem", spy)
+    ground, patches, _, _ = scene()
+    particles = CFG.particles.model_copy(update={"start_scale": 0.5, "start_scale_free_rotation": 3.0})
+    cfg = CFG.model_copy(update={"particles": particles, "patch_chunk": 2})
+    for prior, want in ((YAW, 0.5), (None, 3.0)):
+        seen.clear()
+        match_submap(ground, stack_primitive_sets(patches), rotation_prior=prior, config=cfg)
+        assert len(seen) == 2 and all(c.start_scale == want for c in seen)
+        assert all(c.model_dump(exclude={"start_scale"}) == particles.model_dump(exclude={"start_scale"}) for c in seen)
+
+
 def test_clipper_solver_and_match_arrays() -> None:
     ground, patches, kp, kl = scene()
     cfg = CFG.model_copy(update={"solver": "clipper"})

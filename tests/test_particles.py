@@ -165,6 +165,7 @@ def test_patches_stopping_at_the_same_check_keep_their_results() -> None:
 @pytest.mark.parametrize("options", [
     {"early_stop": False}, {"early_stop": False, "rmsprop": False}, {"early_stop": False, "anneal": False},
     {"noise": False, "n_iterations": 200},  # noise-free ascent settles: the early stop is exercised
+    {"early_stop": False, "start_scale": 2.0},  # a start above 1 survives the first step in part
 ])
 def test_compiled_dynamics_follow_the_torch_loop(dtype: torch.dtype, options: dict) -> None:
     # CPU tensors run the compiled Langevin loop, other devices torch's: the same dynamics and

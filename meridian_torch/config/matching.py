@@ -168,6 +168,18 @@ class ParticleConfig(StrictModel):
         description="associations per patch given to the sampler, the best supported by the two-step walk count "
         "M'(M'1) (`support_pruning`); None = all. Cuts the cost per step ~(m / k)^2 and removes clutter",
     )
+    start_scale: float = Field(
+        default=1.0,
+        gt=0,
+        description="particles start uniform in [0, start_scale) per coordinate, with a rotation prior; the first "
+        "step's squared gradient (~start_scale^2) sets how slowly the preconditioned step grows",
+    )
+    start_scale_free_rotation: float = Field(
+        default=2.0,
+        gt=0,
+        description="start_scale without a rotation prior: a slower start found the true set more often there "
+        "(README, Why the defaults)",
+    )
     step_size: float = Field(default=1.0, gt=0, description="eta; the noise scale is sqrt(eta)")
     rmsprop: bool = Field(default=True, description="RMSprop-style preconditioner (the reference's 'adagrad')")
     alpha: float = Field(default=0.9, ge=0, lt=1, description="decay of the preconditioner's squared-step average")

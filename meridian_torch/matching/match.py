@@ -188,8 +188,11 @@ def _group_hypotheses(
     with stage("pruning"):
         problem = sampler_problem(M, assoc_g.valid, assoc_g.pairs, cfg.particles)
     del M
+    particles = cfg.particles
+    if prior is None:
+        particles = particles.model_copy(update={"start_scale": particles.start_scale_free_rotation})
     with stage("particles"):
-        sets = sample_problem(problem, cfg.particles, seeds[group])
+        sets = sample_problem(problem, particles, seeds[group])
     return _hypotheses(sets, ground, aerial.select(group), _select_associations(assoc, group), cfg)
 
 
