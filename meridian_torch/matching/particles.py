@@ -51,9 +51,10 @@ preconditioner restarted after the first step found nothing.
 Start: x0 uniform in [0, s) per coordinate (s = `start_scale`, `start_scale_free_rotation` for
 matches without a rotation prior). The first step moves almost every coordinate by -1
 (RMSprop's first step is v / |v|, and the dense start's penalty gradient is negative), so at
-s = 1 it clears the start and the particles set out from the next step's noise; at s = 2 the entries above 1/2 survive,
-and the first squared gradient, ~s^2, makes the step grow more slowly. Without a rotation prior
-s = 2 found the true set more often, with one it found it less often (README, Why the defaults).
+s = 1 it clears the start and the particles set out from the next step's noise; at s = 2 the
+entries above 1/2 survive, and the first squared gradient, ~s^2, makes the step grow more
+slowly. Without a rotation prior s = 2 found the true set more often, with one less often
+(README, Why the defaults).
 """
 
 from __future__ import annotations
