@@ -19,6 +19,11 @@ would propose them); per patch = the true patch's own ranking, across = all hypo
 patches ranked by their probability (ties ranked against the truth), as the localizer compares
 them.
 
+Seeds: `--seeds N` matches every submap with the seeds --seed .. --seed + N - 1 (the particles,
+and with --perturb / --decoys the perturbation and the decoys) and counts every (submap, seed)
+case in one table. One seed's table moves by several points between seeds (README, "Stop 55"), so
+compare settings at 10 or more, side by side on the same cached submaps (`--cache`).
+
 Inputs: a sequence folder with groundtruth.tum (e.g. written by `meridian-torch simulate`) and
 its aerial map (.mtm, from `meridian-torch build-map`), or `--simulate CONFIG` to write both
 first into `--work` (short drives via `--drive-m`).
@@ -27,6 +32,8 @@ first into `--work` (short drives via `--drive-m`).
         -c configs/kitti09.yaml --max-submaps 20 --perturb missing=0.4,spurious=0.2,noise_m=1.0
     python scripts/exp_registration.py --simulate configs/kitti00.yaml --work runs/exp00 --max-frames 300
     python scripts/exp_registration.py --simulate configs/demo.yaml --work runs/exp_demo --drive-m 600
+    python scripts/exp_registration.py --sequence runs/kitti09-7hz --map runs/kitti09-7hz/MAP.mtm \
+        -c configs/kitti09.yaml --max-frames 600 --cache runs/k09.pt --seeds 10 --threads 1
 """
 
 from __future__ import annotations
@@ -142,7 +149,7 @@ class Tally:
 
 def format_table(title: str, tally: Tally, threshold: tuple[float, float], paper: dict[str, tuple] | None) -> str:
     """Rows per variant: known rotation top-1/5/10/25 | unknown rotation top-1/5/10/25 (percent)."""
-    head = f"{title}: {tally.n} submaps, success < {threshold[0]:g} m and < {threshold[1]:g} deg (percent)"
+    head = f"{title}: {tally.n} cases (submaps x seeds), success < {threshold[0]:g} m and < {threshold[1]:g} deg (percent)"
     cols = " ".join(f"{'K top-' + str(top):>9}" for top in TOP_L) + " " + " ".join(f"{'U top-' + str(top):>9}" for top in TOP_L)
     lines = [head, f"{'method':<28} {cols}"]
     for name, _ in VARIANTS:
@@ -155,7 +162,7 @@ def format_table(title: str, tally: Tally, threshold: tuple[float, float], paper
 
 def format_across_table(title: str, tally: Tally, threshold: tuple[float, float], n_decoys: int) -> str:
     """Rows per variant: per rotation mode, per-patch top-1 | across-patch top-1/5 (percent)."""
-    head = (f"{title}: {tally.n} submaps, true patch + {n_decoys} decoys, success < {threshold[0]:g} m and "
+    head = (f"{title}: {tally.n} cases (submaps x seeds), true patch + {n_decoys} decoys, success < {threshold[0]:g} m and "
             f"< {threshold[1]:g} deg (percent)")
     cols = " ".join(f"{m + ' ' + c:>12}" for m in ("K", "U") for c in ("patch top-1", "all top-1", "all top-5"))
     lines = [head, f"{'method':<28} {cols}"]
@@ -231,7 +238,7 @@ def diagnose(submap, batch, T_true: np.ndarray, match_cfg) -> str:
 
 
 def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str], max_submaps: int | None,
-        max_frames: int | None, seed: int, threads: int, cache: Path | None = None,
+        max_frames: int | None, seeds: list[int], threads: int, cache: Path | None = None,
         verbose: bool = False, perturbation: Perturbation | None = None, n_decoys: int = 0) -> tuple[Tally, dict[str, float]]:
     import torch
 
@@ -269,7 +276,7 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
     perturbation = perturbation or Perturbation()
     tally = Tally()
     t0 = time.perf_counter()
-    for submap in submaps:
+    for seed, submap in ((seed, submap) for seed in seeds for submap in submaps):
         T_map_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
         T_map_base[:2, 3] -= aerial_map.local_origin_xy  # the map's coordinates are relative to it
         T_true = true_T_world_odom(T_map_base, submap.T_odom_base)
@@ -294,7 +301,7 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
                     tally.add(name, mode, threshold, top_l_success(T_hyp[0], valid[0], T_true, *threshold))
                     tally.add(name, mode + " across", threshold,
                               across_patch_success(T_hyp, probability, valid, T_true, *threshold))
-        print(f"  submap {submap.index:3d}: patch {index}, {len(primitives.points_xy)} points, "
+        print(f"  seed {seed}, submap {submap.index:3d}: patch {index}, {len(primitives.points_xy)} points, "
               f"{len(primitives.line_endpoints)} lines", flush=True)
         if verbose:
             print("    " + diagnose(submap, _patches(aerial_map, [index], True), T_true, match_cfg), flush=True)
@@ -339,6 +346,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="patches matched with the true one, for the across-patch table (default 0: the true one "
                    "alone, the paper's protocol)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=1,
+                   help="match every submap with this many consecutive seeds from --seed and count every (submap, "
+                   "seed) case in one table (e.g. 10: seeds 0-9; one seed's table moves by several points)")
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
     config = args.config
@@ -352,7 +362,10 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:
         p.error(str(error))
     t0 = time.perf_counter()
-    tally, seconds = run(args.sequence, args.map, config, args.set, args.max_submaps, args.max_frames, args.seed,
+    if args.seeds < 1:
+        p.error(f"--seeds must be at least 1, got {args.seeds}")
+    seeds = list(range(args.seed, args.seed + args.seeds))
+    tally, seconds = run(args.sequence, args.map, config, args.set, args.max_submaps, args.max_frames, seeds,
                          args.threads, args.cache, args.verbose, perturbation, args.decoys)
     name = args.sequence.name if args.sequence.name != "sequence" else args.sequence.parent.name
     if not perturbation.is_identity:

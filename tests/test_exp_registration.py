@@ -6,6 +6,7 @@ import math
 import sys
 
 import numpy as np
+import pytest
 from conftest import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -225,3 +226,10 @@ def test_across_table_reports_per_patch_and_across() -> None:
     text = exp.format_across_table("x", tally, (5.0, 5.0), 24)
     row = next(line for line in text.splitlines() if line.startswith("Meridian "))
     assert [float(v) for v in row.split()[1:]] == [0.0, 0.0, 0.0, 100.0, 50.0, 100.0]
+
+
+def test_seeds_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
+    # --seeds 0 would report tables of zero cases: refused before any work.
+    with pytest.raises(SystemExit):
+        exp.main(["--sequence", "missing-sequence", "--map", "missing.mtm", "--seeds", "0"])
+    assert "--seeds must be at least 1, got 0" in capsys.readouterr().err
