@@ -39,6 +39,7 @@ first into `--work` (short drives via `--drive-m`).
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import subprocess
 import sys
@@ -276,7 +277,7 @@ def run(sequence: Path, map_path: Path, config: Path | None, overrides: list[str
     perturbation = perturbation or Perturbation()
     tally = Tally()
     t0 = time.perf_counter()
-    for seed, submap in ((seed, submap) for seed in seeds for submap in submaps):
+    for seed, submap in itertools.product(seeds, submaps):
         T_map_base = interpolate_poses(gt.timestamps, gt.poses, np.array([submap.time]))[0]
         T_map_base[:2, 3] -= aerial_map.local_origin_xy  # the map's coordinates are relative to it
         T_true = true_T_world_odom(T_map_base, submap.T_odom_base)
@@ -351,6 +352,8 @@ def main(argv: list[str] | None = None) -> None:
                    "seed) case in one table (e.g. 10: seeds 0-9; one seed's table moves by several points)")
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
+    if args.seeds < 1:
+        p.error(f"--seeds must be at least 1, got {args.seeds}")
     config = args.config
     if args.simulate is not None:
         args.sequence, args.map = simulate(args.simulate, args.work, args.drive_m, args.max_frames, args.set)
@@ -362,8 +365,6 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:
         p.error(str(error))
     t0 = time.perf_counter()
-    if args.seeds < 1:
-        p.error(f"--seeds must be at least 1, got {args.seeds}")
     seeds = list(range(args.seed, args.seed + args.seeds))
     tally, seconds = run(args.sequence, args.map, config, args.set, args.max_submaps, args.max_frames, seeds,
                          args.threads, args.cache, args.verbose, perturbation, args.decoys)
