@@ -175,10 +175,10 @@ class ParticleConfig(StrictModel):
         "step's squared gradient (~start_scale^2) sets how slowly the preconditioned step grows",
     )
     start_scale_free_rotation: float = Field(
-        default=2.0,
+        default=1.0,
         gt=0,
-        description="start_scale without a rotation prior: a slower start found the true set more often there "
-        "(README, Why the defaults)",
+        description="start_scale without a rotation prior (2 helped on two worlds and not on two others: README, "
+        "Why the defaults)",
     )
     step_size: float = Field(default=1.0, gt=0, description="eta; the noise scale is sqrt(eta)")
     rmsprop: bool = Field(default=True, description="RMSprop-style preconditioner (the reference's 'adagrad')")
