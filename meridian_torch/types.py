@@ -84,6 +84,15 @@ class PrimitiveSet:
         """Move every tensor to `device`; floating tensors also to `dtype`."""
         return PrimitiveSet(**_moved(self, device, dtype))
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The tensors as CPU NumPy arrays by field name (for part files and worker processes)."""
+        return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "PrimitiveSet":
+        """The set of `arrays()` (the arrays are shared, not copied)."""
+        return cls(**{name: torch.from_numpy(a) for name, a in arrays.items()})
+
 
 @dataclass(frozen=True)
 class PrimitiveBatch:

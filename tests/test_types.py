@@ -1,8 +1,9 @@
 """PrimitiveBatch padding: trimming keeps every patch's content and drops only unused padding; moving
-batches between devices and dtypes."""
+batches between devices and dtypes; a set as NumPy arrays and back."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
@@ -58,3 +59,14 @@ def test_moving_a_batch_changes_floating_dtypes_only_and_keeps_values() -> None:
         moved = getattr(wide, name)
         assert moved.dtype == (torch.float64 if t.is_floating_point() else t.dtype)
         assert torch.equal(moved.to(t.dtype), t)
+
+
+@given(st.integers(0, 5), st.integers(0, 5), st.integers(0, 3))
+def test_primitive_set_arrays_round_trip(n_points: int, n_lines: int, seed: int) -> None:
+    # Part files and worker processes carry a set as NumPy arrays by field name.
+    prims = _set(n_points, n_lines, seed)
+    arrays = prims.arrays()
+    assert set(arrays) == set(vars(prims)) and all(isinstance(a, np.ndarray) for a in arrays.values())
+    back = PrimitiveSet.from_arrays(arrays)
+    for name, tensor in vars(prims).items():
+        assert getattr(back, name).dtype == tensor.dtype and torch.equal(getattr(back, name), tensor)

@@ -22,7 +22,6 @@ same blocks and yields their results in block order, so the map does not depend 
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import multiprocessing
 from collections import deque
@@ -94,18 +93,12 @@ def _describe_in_worker(indices: np.ndarray) -> _ArrayResult:
     tensor, so a caller holding a whole map (`build_aerial_map`, 4 km^2: about 35 000 tensors) ran
     out of descriptors. Arrays travel by value."""
     assert _worker is not None, "worker not initialized"
-    return [
-        ({f.name: getattr(prims, f.name).numpy() for f in dataclasses.fields(prims)}, global_desc.numpy())
-        for prims, global_desc in _worker.describe(indices)
-    ]
+    return [(prims.arrays(), global_desc.numpy()) for prims, global_desc in _worker.describe(indices)]
 
 
 def _from_arrays(block: _ArrayResult) -> BlockResult:
     """A pool worker's arrays as the block's primitives and global descriptors again."""
-    return [
-        (PrimitiveSet(**{name: torch.from_numpy(a) for name, a in arrays.items()}), torch.from_numpy(global_desc))
-        for arrays, global_desc in block
-    ]
+    return [(PrimitiveSet.from_arrays(arrays), torch.from_numpy(global_desc)) for arrays, global_desc in block]
 
 
 def _local_blocks(

@@ -179,16 +179,16 @@ def _part_path(work_dir: Path, index: int) -> Path:
 
 def _save_patch(path: Path, prims: PrimitiveSet, global_desc: torch.Tensor) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, global_desc=global_desc.numpy(), **{k: v.numpy() for k, v in vars(prims).items()})
+        np.savez(fh, global_desc=global_desc.numpy(), **prims.arrays())
 
 
 def _load_patch(path: Path) -> tuple[PrimitiveSet, torch.Tensor] | None:
     """A finished patch, or None when its part file is damaged (it is then built again)."""
     try:
         with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: torch.from_numpy(npz[k]) for k in npz.files}
-        global_desc = arrays.pop("global_desc")
-        return PrimitiveSet(**arrays), global_desc
+            arrays = {k: npz[k] for k in npz.files}
+        global_desc = torch.from_numpy(arrays.pop("global_desc"))
+        return PrimitiveSet.from_arrays(arrays), global_desc
     except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile):
         return None
 
