@@ -59,7 +59,7 @@ REPO = Path(__file__).resolve().parents[1]
 STAGE_ORDER = (
     "read frames", "ground mapping", "global descriptors", "segmentation", "segment descriptors",
     "observations", "tracking", "submaps", "localization", "place recognition", "matching", "associations",
-    "affinity", "pruning", "particles", "clipper", "registration", "clustering",
+    "affinity", "pruning", "particles", "langevin", "clipper", "registration", "clustering",
     "verification", "consistency", "pose graph",
     "final pass",
 )

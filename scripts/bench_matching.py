@@ -215,6 +215,7 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     import torch
 
     torch.set_num_threads(args.threads)
+    from meridian_torch.core.timing import record_stages
     from meridian_torch.matching.match import match_submap
     from meridian_torch.matching.particles import patch_seeds
     from meridian_torch.types import stack_primitive_sets
@@ -249,23 +250,26 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     for ground, patches, true_idx, truth in scenes:
         gen = torch.Generator().manual_seed(args.seed)
         cpu0 = time.process_time()
-        if args.mode == "batched":
-            batch = stack_primitive_sets(patches)
-            t0 = time.perf_counter()
-            hyp = match_submap(ground, batch, config=cfg, generator=gen)
-            elapsed = time.perf_counter() - t0
-            tops = [_top(hyp, p, truth) for p in range(len(patches))]
-        else:
-            tops = []
-            t0 = time.perf_counter()
-            for patch in patches:
-                hyp = match_submap(ground, stack_primitive_sets([patch]), config=cfg, generator=gen)
-                tops.append(_top(hyp, 0, truth))
-            elapsed = time.perf_counter() - t0
+        with record_stages() as stages:
+            if args.mode == "batched":
+                batch = stack_primitive_sets(patches)
+                t0 = time.perf_counter()
+                hyp = match_submap(ground, batch, config=cfg, generator=gen)
+                elapsed = time.perf_counter() - t0
+                tops = [_top(hyp, p, truth) for p in range(len(patches))]
+            else:
+                tops = []
+                t0 = time.perf_counter()
+                for patch in patches:
+                    hyp = match_submap(ground, stack_primitive_sets([patch]), config=cfg, generator=gen)
+                    tops.append(_top(hyp, 0, truth))
+                elapsed = time.perf_counter() - t0
         best = max(range(len(patches)), key=lambda p: tops[p]["objective"] if tops[p]["valid"] else -1.0)
         cases.append({
             "time_s": elapsed,
             "cpu_s": time.process_time() - cpu0,
+            # seconds inside the Langevin loop, summed over the threads that ran it side by side
+            "langevin_s": stages.total("langevin"),
             "true_idx": true_idx,
             "truth": truth,
             "true_top": tops[true_idx],
@@ -275,6 +279,8 @@ def run_match_mode(args: argparse.Namespace) -> dict:
     return {
         "mode": args.mode,
         "threads": torch.get_num_threads(),
+        # threads the batched match's Langevin loops run on side by side: one per patch group
+        "langevin_threads": min(args.threads, -(-n_patches // cfg.patch_chunk)) if args.mode == "batched" else 1,
         "torch": torch.__version__,
         "n_patches": n_patches,
         "cases": cases,
@@ -327,6 +333,17 @@ def _fmt_top(top: dict) -> str:
     )
 
 
+def _speedup_for_ratio(target: float, lb: float, restb: float, ll: float, restl: float) -> float | None:
+    """How many times faster the Langevin loop must run in both modes for loop / batched to reach
+    `target`: (restl + ll / f) / (restb + lb / f) >= target; None if no f does (the rest alone
+    stays below it)."""
+    if restl + ll >= target * (restb + lb):
+        return 1.0
+    if restl <= target * restb:
+        return None
+    return (target * lb - ll) / (restl - target * restb)
+
+
 def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
     n_patches = 5 if args.quick else args.patches
     cfg = make_config(args)
@@ -369,6 +386,25 @@ def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
         ok = sum(c["true_top"]["within_5m_5deg"] for c in rb["cases"])
         print(f"{tree:>10} {tb:>10.3f} {tl:>10.3f} {tl / tb:>11.2f}x {cb:>13.3f} {cl:>10.3f} {cl / cb:>8.2f}x "
               f"{ok:>4}/{len(rb['cases']):<4} {rb['peak_after_mib']:>9.1f}")
+    print("the Langevin loop (one kernel in both modes) against the rest, median seconds per submap:")
+    needed = []
+    print("{:>10} {:>16} {:>13} {:>16} {:>13} {:>22}".format(
+        "tree", "batched Langevin", "batched rest", "loop Langevin", "loop rest", "loop/batched, rest"))
+    for tree, _ in trees:
+        rb, rl = results[tree, "batched"], results[tree, "loop"]
+        # The batched loops run side by side, so their wall share is their seconds / threads.
+        lb = _median([c["langevin_s"] for c in rb["cases"]]) / rb.get("langevin_threads", 1)
+        ll = _median([c["langevin_s"] for c in rl["cases"]])
+        restb = _median([c["time_s"] - c["langevin_s"] / rb.get("langevin_threads", 1) for c in rb["cases"]])
+        restl = _median([c["time_s"] - c["langevin_s"] for c in rl["cases"]])
+        print(f"{tree:>10} {lb:>16.3f} {restb:>13.3f} {ll:>16.3f} {restl:>13.3f} {restl / restb:>21.2f}x")
+        needed.append((tree, _speedup_for_ratio(5.0, lb, restb, ll, restl)))
+    print("  (loop/batched, rest: the ratio if the Langevin loop cost nothing in either mode; the loop's own ratio "
+          "is at most the threads that run it side by side)")
+    for tree, f in needed:
+        print(f"  {tree}: loop/batched reaches 5x " + ("already" if f is not None and f <= 1 else
+              f"if the Langevin loop runs {f:.2f}x faster in both modes" if f is not None else
+              "not even with a free Langevin loop"))
     if args.baseline_src:
         new, old = results["this tree", "batched"], results["baseline", "batched"]
         speedup = _median([c["time_s"] for c in old["cases"]]) / _median([c["time_s"] for c in new["cases"]])

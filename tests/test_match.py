@@ -284,7 +284,10 @@ def test_sub_stages_are_timed_when_recorded() -> None:
     cfg = CFG.model_copy(update={"particles": ParticleConfig(n_particles=8, n_iterations=10), "patch_chunk": 2})
     with record_stages() as times:
         match_submap(ground, stack_primitive_sets(patches), config=cfg, generator=torch.Generator().manual_seed(0))
-    assert set(times.seconds) == {"associations", "affinity", "pruning", "particles", "registration", "clustering",
-                                  "verification"}
+    assert set(times.seconds) == {"associations", "affinity", "pruning", "particles", "particles/langevin",
+                                  "registration", "clustering", "verification"}
     groups = -(-len(patches) // 2)
     assert times.calls["affinity"] == times.calls["pruning"] == times.calls["particles"] == groups  # one per group
+    # the Langevin loop is timed inside the sampler, once per group
+    assert times.calls["particles/langevin"] == groups
+    assert 0 < times.seconds["particles/langevin"] <= times.seconds["particles"]

@@ -69,6 +69,7 @@ from torch import Tensor
 
 from meridian_torch.config.matching import ParticleConfig
 from meridian_torch.core.parallel import cpu_threads, thread_map
+from meridian_torch.core.timing import stage
 from meridian_torch.matching.affinity import AffinityEntries
 from meridian_torch.matching.kernels import block_rows, langevin_patches, merge_sets, round_particles
 from meridian_torch.matching.particle_noise import (
@@ -429,7 +430,8 @@ def _sample(M: _BlockRows, valid: Tensor, pairs: Tensor, cfg: ParticleConfig, se
     dtype = M.value.dtype
     d = valid.to(dtype).sum(-1)
     penalised = _penalised(M, d)
-    x, iterations = _run_dynamics(penalised, d, valid, cfg, seeds)
+    with stage("langevin"):  # the loop alone: most of a match (bench_matching.py separates it)
+        x, iterations = _run_dynamics(penalised, d, valid, cfg, seeds)
 
     masks, size, one_to_one = _rounded_sets(penalised, d, valid, pairs, x, cfg.rounding)
     keep = (size >= cfg.min_set_size) & one_to_one
