@@ -16,6 +16,7 @@ from meridian_torch.backend.consistency import select_inliers
 from meridian_torch.backend.pose_graph import (
     IncrementalPoseGraph,
     align_odometry,
+    closure_sigma_scales,
     optimize_pose_graph,
     propagate_covariance,
 )
@@ -152,18 +153,52 @@ def test_incremental_graph_follows_the_batch_solution(seed: int, drift_deg: floa
     nodes = np.arange(7, 300, 23)
     meas = truth[nodes] @ se2(rng.normal(0, 1.5, len(nodes)), rng.normal(0, 1.5, len(nodes)),
                               rng.normal(0, 0.06, len(nodes)))
+    scales = rng.uniform(1.0, 3.0, len(nodes))  # each closure its own weight, as from its probability
     cfg = BackendConfig()
     graph = IncrementalPoseGraph(cfg)
     for j in range(2, len(nodes)):
         n = min(int(nodes[j]) + 1 + int(rng.integers(0, 10)), len(odom))
         given_ = np.arange(j + 1)
         given_ = given_[(given_ % drop_every != j % drop_every) | (given_ == j)]  # some earlier priors withdrawn
-        T_last, cov = graph.update(odom[:n], nodes[given_], meas[given_], covariance=True)
-        batch = optimize_pose_graph(odom[:n], nodes[given_], meas[given_], cfg, covariance="last")
+        T_last, cov = graph.update(odom[:n], nodes[given_], meas[given_], covariance=True, prior_scales=scales[given_])
+        batch = optimize_pose_graph(odom[:n], nodes[given_], meas[given_], cfg, covariance="last",
+                                    prior_scales=scales[given_])
         assert graph.n_nodes == n
         assert np.linalg.norm(T_last[:2, 2] - batch.T_world_base[-1, :2, 2]) < 0.01
         assert abs(math.atan2(T_last[1, 0], T_last[0, 0]) - math.atan2(*batch.T_world_base[-1, 1::-1, 0])) < 1e-3
         assert np.abs(cov - batch.covariance[0]).max() < 1e-2 * np.abs(batch.covariance[0]).max()
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(1e-6, 1.0), min_size=1, max_size=20), st.floats(0.01, 1.0), st.floats(1.0, 10.0))
+def test_closure_sigma_scales(probability: list[float], reference: float, max_scale: float) -> None:
+    p = np.array(probability)
+    scales = closure_sigma_scales(p, BackendConfig(prior_sigma_probability=reference, prior_sigma_max_scale=max_scale))
+    assert ((scales >= 1.0) & (scales <= max_scale)).all()
+    assert (scales[p >= reference] == 1.0).all()  # a probable closure keeps the configured sigmas
+    inside = (p < reference) & (np.sqrt(reference / p) <= max_scale)
+    np.testing.assert_allclose(scales[inside], np.sqrt(reference / p[inside]))  # variance ~ 1 / p
+    order = np.argsort(p)
+    assert (np.diff(scales[order]) <= 0).all()  # less probable: never more trusted
+    assert (closure_sigma_scales(p, BackendConfig(prior_sigma_probability=None)) == 1.0).all()
+
+
+def test_a_scaled_closure_pulls_less() -> None:
+    # Two closures on the same frame, 4 m apart: the solution lies between them, nearer the one
+    # with the smaller sigmas, at the ratio of their weights (1 / scale^2).
+    truth, odom = path(60)
+    left, right = truth[30] @ se2(0.0, -2.0, 0.0), truth[30] @ se2(0.0, 2.0, 0.0)
+    nodes, meas = np.array([30, 30]), np.stack([left, right])
+    cfg = BackendConfig()
+    for scales in ([1.0, 1.0], [1.0, 3.0], [2.0, 1.0]):
+        sol = optimize_pose_graph(odom, nodes, meas, cfg, prior_scales=np.array(scales))
+        lateral = (np.linalg.inv(truth[30]) @ sol.T_world_base[30])[1, 2]
+        w = 1.0 / np.array(scales) ** 2
+        assert lateral == pytest.approx((w[0] * -2.0 + w[1] * 2.0) / w.sum(), abs=0.05)
+    with pytest.raises(ValueError, match="prior scales"):
+        optimize_pose_graph(odom, nodes, meas, cfg, prior_scales=np.array([1.0, 0.0]))
+    with pytest.raises(ValueError, match="prior scales"):
+        optimize_pose_graph(odom, nodes, meas, cfg, prior_scales=np.array([1.0]))
 
 
 def test_incremental_graph_refuses_to_drop_frames() -> None:

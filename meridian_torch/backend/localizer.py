@@ -56,6 +56,7 @@ from meridian_torch.backend.frames import FrameBuffer, OnlineUpdate, lift_se2
 from meridian_torch.backend.pose_graph import (
     IncrementalPoseGraph,
     PoseGraphSolution,
+    closure_sigma_scales,
     optimize_pose_graph,
     propagate_covariance,
 )
@@ -251,7 +252,8 @@ class Localizer:
         nodes, priors = self._prior_poses(inliers)
         with stage("pose graph"):
             sol = optimize_pose_graph(
-                self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance
+                self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance,
+                prior_scales=closure_sigma_scales(inliers.probability.numpy(), self.cfg.backend),
             )
         self._timer.add("pose_graph", start)
         return sol
@@ -272,7 +274,8 @@ class Localizer:
         n_nodes = max(n_nodes, self._online_graph.n_nodes)
         with stage("pose graph"):
             T_world_base, cov = self._online_graph.update(
-                self._odom_se2[:n_nodes], nodes, priors, covariance=self.online_covariance
+                self._odom_se2[:n_nodes], nodes, priors, covariance=self.online_covariance,
+                prior_scales=closure_sigma_scales(inliers.probability.numpy(), self.cfg.backend),
             )
         self._timer.add("pose_graph", start)
         last = n_nodes - 1
@@ -298,6 +301,8 @@ class Localizer:
             return accepted
         nodes, priors = self._prior_poses(accepted)
         submaps = accepted.submap_index.tolist()
+        # The nominal closure noise, not a closure's scaled one: a less probable closure is not let
+        # through more easily.
         prior_cov = np.diag([b.prior_trans_sigma_m**2, b.prior_trans_sigma_m**2, math.radians(b.prior_rot_sigma_deg) ** 2])
         fails = np.zeros(len(accepted), dtype=bool)
         for k, (submap, node, prior) in enumerate(zip(submaps, nodes, priors)):

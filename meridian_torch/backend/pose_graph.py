@@ -2,7 +2,8 @@
 
 One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between consecutive
 frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time
-to its submap. Plain Gaussian noise (CLIPPER removed the outliers already), Levenberg-Marquardt
+to its submap, its sigmas the configured ones times the closure's scale (`closure_sigma_scales`:
+larger for less probable hypotheses). Plain Gaussian noise (CLIPPER removed the outliers already), Levenberg-Marquardt
 with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
 `IncrementalPoseGraph` keeps the same graph online in iSAM2: each update adds the new frames'
 odometry factors and the loop closures that changed, instead of rebuilding and re-solving the
@@ -24,6 +25,7 @@ __all__ = [
     "IncrementalPoseGraph",
     "PoseGraphSolution",
     "align_odometry",
+    "closure_sigma_scales",
     "optimize_pose_graph",
     "propagate_covariance",
 ]
@@ -43,6 +45,19 @@ def align_odometry(T_world_base: np.ndarray, T_odom_base: np.ndarray) -> np.ndar
     return se2_from_xy_yaw(t[0], t[1], np.array(yaw))
 
 
+def closure_sigma_scales(probability: np.ndarray, cfg: BackendConfig) -> np.ndarray:
+    """Each loop closure's scale (K,) of the prior sigmas from its hypothesis probability (K,):
+    sqrt(`prior_sigma_probability` / p) below that probability, clipped to
+    [1, `prior_sigma_max_scale`]; all 1 when `prior_sigma_probability` is null. A closure's
+    variance then grows as 1 / p below the reference: measured on the KITTI-map worlds, the
+    closures turned by several degrees have low probabilities (README, Why the defaults)."""
+    probability = np.asarray(probability, dtype=np.float64)
+    if cfg.prior_sigma_probability is None:
+        return np.ones_like(probability)
+    ratio = cfg.prior_sigma_probability / np.maximum(probability, 1e-12)
+    return np.clip(np.sqrt(ratio), 1.0, cfg.prior_sigma_max_scale)
+
+
 @dataclass(frozen=True)
 class PoseGraphSolution:
     T_world_base: np.ndarray  # (N, 3, 3) optimized pose of every node
@@ -59,8 +74,10 @@ def optimize_pose_graph(
     cfg: BackendConfig,
     *,
     covariance: bool | Literal["last"] = False,
+    prior_scales: np.ndarray | None = None,
 ) -> PoseGraphSolution:
-    """Optimize N nodes (odometry poses (N, 3, 3)) with K >= 1 loop-closure priors on `prior_nodes` (K,).
+    """Optimize N nodes (odometry poses (N, 3, 3)) with K >= 1 loop-closure priors on `prior_nodes` (K,),
+    their sigmas scaled by `prior_scales` (K,) (default 1: the configured sigmas).
 
     `covariance=True` also returns every node's marginal covariance, rotated from GTSAM's body
     tangent space into world-aligned (x east, y north, yaw) axes; `"last"` only the last node's
@@ -68,9 +85,11 @@ def optimize_pose_graph(
     """
     import gtsam
 
-    T_odom_base, prior_nodes, T_world_base_priors = _checked(T_odom_base, prior_nodes, T_world_base_priors)
+    T_odom_base, prior_nodes, T_world_base_priors, prior_scales = _checked(
+        T_odom_base, prior_nodes, T_world_base_priors, prior_scales
+    )
     n = len(T_odom_base)
-    graph = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, cfg)
+    graph = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, prior_scales, cfg)
     T_world_odom = align_odometry(T_world_base_priors, T_odom_base[prior_nodes])
     initial = gtsam.Values()
     for k, T in enumerate(T_world_odom @ T_odom_base):
@@ -116,32 +135,38 @@ class IncrementalPoseGraph:
         return self._n
 
     def update(
-        self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray, *, covariance: bool = False
+        self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray, *,
+        covariance: bool = False, prior_scales: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Bring the graph to the frames T_odom_base (N, 3, 3) (the first n_nodes unchanged, N >=
-        n_nodes) and exactly the priors given; returns the last node's optimized pose (3, 3) and,
-        with `covariance`, its marginal covariance of (x, y, yaw) in world axes (3, 3)."""
+        n_nodes) and exactly the priors given (sigmas scaled by `prior_scales`, default 1); returns
+        the last node's optimized pose (3, 3) and, with `covariance`, its marginal covariance of
+        (x, y, yaw) in world axes (3, 3)."""
         import gtsam
 
-        T_odom_base, prior_nodes, T_world_base_priors = _checked(T_odom_base, prior_nodes, T_world_base_priors)
+        T_odom_base, prior_nodes, T_world_base_priors, prior_scales = _checked(
+            T_odom_base, prior_nodes, T_world_base_priors, prior_scales
+        )
         n = len(T_odom_base)
         if n < self._n:
             raise ValueError(f"the pose graph has {self._n} nodes; an update cannot drop frames (got {n})")
-        keys = [(int(k), np.ascontiguousarray(T).tobytes()) for k, T in zip(prior_nodes, T_world_base_priors)]
+        # A prior is its node, measured pose and scale, bit for bit.
+        keys = [(int(k), np.ascontiguousarray(T).tobytes() + np.float64(s).tobytes())
+                for k, T, s in zip(prior_nodes, T_world_base_priors, prior_scales)]
         if self._isam is None:
-            self._start(T_odom_base, prior_nodes, T_world_base_priors, keys)
+            self._start(T_odom_base, prior_nodes, T_world_base_priors, prior_scales, keys)
         else:
-            prior_noise = _prior_noise(self.cfg)
             factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
             if n > self._n:  # new frames start where the odometry carries the last estimate
                 T_world_odom = self._pose(self._n - 1) @ np.linalg.inv(T_odom_base[self._n - 1])
                 _add_odometry(factors, T_odom_base[self._n - 1 :], self._n - 1, self.cfg)
                 for k in range(self._n, n):
                     values.insert(k, _pose2(T_world_odom @ T_odom_base[k]))
-            wanted = dict(zip(keys, T_world_base_priors))
+            wanted = dict(zip(keys, zip(T_world_base_priors, prior_scales)))
             added = [key for key in wanted if key not in self._priors]
             for key in added:
-                factors.add(gtsam.PriorFactorPose2(key[0], _pose2(wanted[key]), prior_noise))
+                T, scale = wanted[key]
+                factors.add(gtsam.PriorFactorPose2(key[0], _pose2(T), _prior_noise(self.cfg, scale)))
             removed = [key for key in self._priors if key not in wanted]
             result = self._isam.update(factors, values, [self._priors.pop(key) for key in removed])
             first_prior = factors.size() - len(added)
@@ -157,11 +182,12 @@ class IncrementalPoseGraph:
         return T_last, cov
 
     def _start(self, T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
-               keys: list[tuple[int, bytes]]) -> None:
+               prior_scales: np.ndarray, keys: list[tuple[int, bytes]]) -> None:
         import gtsam
 
-        sol = optimize_pose_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg)
-        graph, values = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg), gtsam.Values()
+        sol = optimize_pose_graph(T_odom_base, prior_nodes, T_world_base_priors, self.cfg, prior_scales=prior_scales)
+        graph = _factor_graph(T_odom_base, prior_nodes, T_world_base_priors, prior_scales, self.cfg)
+        values = gtsam.Values()
         first_prior = len(T_odom_base) - 1  # after the odometry factors
         for k, T in enumerate(sol.T_world_base):
             values.insert(k, _pose2(T))
@@ -185,8 +211,8 @@ class IncrementalPoseGraph:
 
 
 def _checked(
-    T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray, prior_scales: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     T_odom_base = np.asarray(T_odom_base, dtype=np.float64)
     prior_nodes = np.asarray(prior_nodes, dtype=np.int64)
     T_world_base_priors = np.asarray(T_world_base_priors, dtype=np.float64)
@@ -195,7 +221,12 @@ def _checked(
         raise ValueError("the pose graph needs at least one node and one loop-closure prior")
     if prior_nodes.min() < 0 or prior_nodes.max() >= n:
         raise ValueError(f"prior nodes must lie in [0, {n}), got {prior_nodes.min()}..{prior_nodes.max()}")
-    return T_odom_base, prior_nodes, T_world_base_priors
+    if prior_scales is None:
+        prior_scales = np.ones(len(prior_nodes))
+    prior_scales = np.asarray(prior_scales, dtype=np.float64)
+    if prior_scales.shape != prior_nodes.shape or not (prior_scales > 0).all() or not np.isfinite(prior_scales).all():
+        raise ValueError(f"prior scales must be {len(prior_nodes)} finite positive numbers, got {prior_scales}")
+    return T_odom_base, prior_nodes, T_world_base_priors, prior_scales
 
 
 def _pose2(T: np.ndarray):
@@ -214,25 +245,24 @@ def _odometry_step_sigmas(T_base: np.ndarray, cfg: BackendConfig) -> tuple[np.nd
     return trans, rot
 
 
-def _prior_noise(cfg: BackendConfig):
-    """The loop-closure prior's GTSAM diagonal model."""
+def _prior_noise(cfg: BackendConfig, scale: float):
+    """A loop-closure prior's GTSAM diagonal model, the configured sigmas times `scale`."""
     import gtsam
 
     return gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
+        scale * np.array([cfg.prior_trans_sigma_m, cfg.prior_trans_sigma_m, math.radians(cfg.prior_rot_sigma_deg)])
     )
 
 
 def _factor_graph(T_odom_base: np.ndarray, prior_nodes: np.ndarray, T_world_base_priors: np.ndarray,
-                  cfg: BackendConfig):
+                  prior_scales: np.ndarray, cfg: BackendConfig):
     """The graph's factors: the odometry steps (nodes 0..N-1, first), then one prior per loop closure."""
     import gtsam
 
-    prior_noise = _prior_noise(cfg)
     graph = gtsam.NonlinearFactorGraph()
     _add_odometry(graph, T_odom_base, 0, cfg)
-    for node, T in zip(prior_nodes, T_world_base_priors):
-        graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), prior_noise))
+    for node, T, scale in zip(prior_nodes, T_world_base_priors, prior_scales):
+        graph.add(gtsam.PriorFactorPose2(int(node), _pose2(T), _prior_noise(cfg, float(scale))))
     return graph
 
 

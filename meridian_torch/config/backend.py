@@ -66,6 +66,17 @@ class BackendConfig(StrictModel):
     )
     prior_trans_sigma_m: float = Field(default=2.0, gt=0, description="loop-closure prior sigma x, y (reference)")
     prior_rot_sigma_deg: float = Field(default=5.0, gt=0, description="loop-closure prior yaw sigma (reference)")
+    prior_sigma_probability: float | None = Field(
+        default=0.15,
+        gt=0,
+        le=1,
+        description="a loop closure whose hypothesis probability p is below this gets its pose-graph prior sigmas "
+        "scaled by sqrt(this / p), at most prior_sigma_max_scale (the online gate keeps the nominal sigmas): the "
+        "closures turned by several degrees are mostly the less probable ones; null: every closure the same sigmas",
+    )
+    prior_sigma_max_scale: float = Field(
+        default=3.0, ge=1, description="the largest scale of a loop closure's prior sigmas (prior_sigma_probability)"
+    )
     attempt_min_inliers: int = Field(
         default=3,
         ge=1,
