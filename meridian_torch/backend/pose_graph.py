@@ -3,8 +3,8 @@
 One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between consecutive
 frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time
 to its submap, its sigmas the configured ones times the closure's scale (`closure_sigma_scales`:
-larger for less probable hypotheses). Plain Gaussian noise (CLIPPER removed the outliers already), Levenberg-Marquardt
-with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
+larger for less probable hypotheses). Plain Gaussian noise (CLIPPER removed the outliers
+already), Levenberg-Marquardt with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
 `IncrementalPoseGraph` keeps the same graph online in iSAM2: each update adds the new frames'
 odometry factors and the loop closures that changed, instead of rebuilding and re-solving the
 whole drive. Poses in and out are numpy float64 (..., 3, 3) SE(2) matrices.
