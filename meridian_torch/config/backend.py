@@ -70,9 +70,10 @@ class BackendConfig(StrictModel):
         default=0.15,
         gt=0,
         le=1,
-        description="a loop closure whose hypothesis probability p is below this gets its pose-graph prior sigmas "
-        "scaled by sqrt(this / p), at most prior_sigma_max_scale (the online gate keeps the nominal sigmas): the "
-        "closures turned by several degrees are mostly the less probable ones; null: every closure the same sigmas",
+        description="a loop closure whose hypothesis probability p (with verification, the default: the share of "
+        "the submap aligned beyond chance) is below this gets its pose-graph prior sigmas scaled by sqrt(this / p), "
+        "at most prior_sigma_max_scale (the online gate keeps the nominal sigmas): the closures turned by several "
+        "degrees are mostly the less probable ones; null: every closure the same sigmas",
     )
     prior_sigma_max_scale: float = Field(
         default=3.0, ge=1, description="the largest scale of a loop closure's prior sigmas (prior_sigma_probability)"
