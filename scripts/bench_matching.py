@@ -394,6 +394,9 @@ def orchestrate(args: argparse.Namespace, argv: list[str]) -> None:
         "tree", "batched Langevin", "batched rest", "loop Langevin", "loop rest", "loop/batched, rest"))
     for tree, _ in trees:
         rb, rl = results[tree, "batched"], results[tree, "loop"]
+        if not any(c["langevin_s"] for c in rb["cases"] + rl["cases"]):
+            print(f"{tree:>10}  (its package does not time the Langevin loop: no 'langevin' stage)")
+            continue
         # The batched loops run side by side, so their wall share is their seconds / threads.
         lb = _median([c["langevin_s"] for c in rb["cases"]]) / rb.get("langevin_threads", 1)
         ll = _median([c["langevin_s"] for c in rl["cases"]])
