@@ -253,7 +253,7 @@ class Localizer:
         with stage("pose graph"):
             sol = optimize_pose_graph(
                 self._odom_se2[:n_nodes], nodes, priors, self.cfg.backend, covariance=covariance,
-                prior_scales=closure_sigma_scales(inliers.probability.numpy(), self.cfg.backend),
+                prior_scales=self._prior_scales(inliers),
             )
         self._timer.add("pose_graph", start)
         return sol
@@ -265,6 +265,10 @@ class Localizer:
         T_world_odom = inliers.T_world_base.numpy() @ np.linalg.inv(inliers.T_odom_base.numpy())
         return nodes, T_world_odom @ self._odom_se2[nodes]
 
+    def _prior_scales(self, inliers: LoopClosureCandidates) -> np.ndarray:
+        """Each loop closure's scale of the prior sigmas, from its hypothesis probability."""
+        return closure_sigma_scales(inliers.probability.numpy(), self.cfg.backend)
+
     def _anchor(self, inliers: LoopClosureCandidates, n_nodes: int, available_time: float) -> None:
         """Update the online pose graph (iSAM2) to frame n_nodes - 1 and these inliers; its last
         pose anchors the online estimate from `available_time` on."""
@@ -275,7 +279,7 @@ class Localizer:
         with stage("pose graph"):
             T_world_base, cov = self._online_graph.update(
                 self._odom_se2[:n_nodes], nodes, priors, covariance=self.online_covariance,
-                prior_scales=closure_sigma_scales(inliers.probability.numpy(), self.cfg.backend),
+                prior_scales=self._prior_scales(inliers),
             )
         self._timer.add("pose_graph", start)
         last = n_nodes - 1

@@ -4,7 +4,8 @@ One Pose2 T_world_base per frame, BetweenFactorPose2 odometry factors between co
 frames, and every inlier loop closure as a unary PriorFactorPose2 on the frame nearest in time
 to its submap, its sigmas the configured ones times the closure's scale (`closure_sigma_scales`:
 larger for less probable hypotheses). Plain Gaussian noise (CLIPPER removed the outliers
-already), Levenberg-Marquardt with GTSAM's defaults. The initial values are the odometry aligned rigidly to the loop closures.
+already), Levenberg-Marquardt with GTSAM's defaults. The initial values are the odometry aligned
+rigidly to the loop closures.
 `IncrementalPoseGraph` keeps the same graph online in iSAM2: each update adds the new frames'
 odometry factors and the loop closures that changed, instead of rebuilding and re-solving the
 whole drive. Poses in and out are numpy float64 (..., 3, 3) SE(2) matrices.
@@ -166,7 +167,7 @@ class IncrementalPoseGraph:
             added = [key for key in wanted if key not in self._priors]
             for key in added:
                 T, scale = wanted[key]
-                factors.add(gtsam.PriorFactorPose2(key[0], _pose2(T), _prior_noise(self.cfg, scale)))
+                factors.add(gtsam.PriorFactorPose2(key[0], _pose2(T), _prior_noise(self.cfg, float(scale))))
             removed = [key for key in self._priors if key not in wanted]
             result = self._isam.update(factors, values, [self._priors.pop(key) for key in removed])
             first_prior = factors.size() - len(added)

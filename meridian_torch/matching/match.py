@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from meridian_torch.config.matching import MatchConfig
+from meridian_torch.config.matching import MatchConfig, ParticleConfig
 from meridian_torch.core.parallel import cpu_threads, thread_map
 from meridian_torch.core.timing import stage
 from meridian_torch.matching.affinity import affinity, affinity_entries
@@ -159,8 +159,11 @@ def match_submap(
     # The groups are the same for any thread count, and so are the results (a lone group runs on
     # the caller's threads, as every match did before).
     threads = cpu_threads() if device.type == "cpu" else 1
+    particles = cfg.particles  # the sampler's settings, chosen once for every group
+    if prior is None:
+        particles = particles.model_copy(update={"start_scale": particles.start_scale_free_rotation})
     parts = thread_map(
-        lambda group: _group_hypotheses(ground, aerial, assoc, prior, seeds, group, cfg),
+        lambda group: _group_hypotheses(ground, aerial, assoc, prior, seeds, group, cfg, particles),
         groups,
         threads,
         torch_threads_each=1,
@@ -179,18 +182,16 @@ def _patch_groups(aerial: PrimitiveBatch, size: int) -> list[Tensor]:
 
 def _group_hypotheses(
     ground: PrimitiveSet, aerial: PrimitiveBatch, assoc: Associations, prior: Tensor | None, seeds: Tensor,
-    group: Tensor, cfg: MatchConfig,
+    group: Tensor, cfg: MatchConfig, particles: ParticleConfig,
 ) -> Hypotheses:
-    """Particle sets and hypotheses of the patches `group` (seeds: one per patch of `aerial`)."""
+    """Particle sets (sampled with `particles`) and hypotheses of the patches `group` (seeds: one
+    per patch of `aerial`)."""
     assoc_g, aerial_g = _patch_chunk(assoc, aerial, group)
     with stage("affinity"):
         M = affinity_entries(ground, aerial_g, assoc_g, cfg.affinity, rotation_prior=None if prior is None else prior[group])
     with stage("pruning"):
         problem = sampler_problem(M, assoc_g.valid, assoc_g.pairs, cfg.particles)
     del M
-    particles = cfg.particles
-    if prior is None:
-        particles = particles.model_copy(update={"start_scale": particles.start_scale_free_rotation})
     with stage("particles"):
         sets = sample_problem(problem, particles, seeds[group])
     return _hypotheses(sets, ground, aerial.select(group), _select_associations(assoc, group), cfg)
