@@ -104,6 +104,7 @@ class World:
         self.bad_submaps: set[int] = set()  # no correct hypothesis at all
         self.corrupt_submaps: set[int] = set()  # the correct hypothesis is shifted 25 m
         self.shift_m: dict[int, float] = {}  # the correct hypothesis is shifted this far along x
+        self.probability_scale = 1.0  # of every hypothesis probability (0.4, 0.3, 0.2 by rank)
         self.calls: list[tuple[int, bool]] = []  # (submap, with rotation prior)
 
     def submaps(self) -> list[GroundSubmap]:
@@ -147,7 +148,7 @@ class World:
         T_true = self.true_T_world_odom(i)
         theta = torch.empty(P, L, dtype=torch.float64)
         t = torch.empty(P, L, 2, dtype=torch.float64)
-        prob = torch.tensor([0.4, 0.3, 0.2], dtype=torch.float64).expand(P, L).clone()
+        prob = (torch.tensor([0.4, 0.3, 0.2], dtype=torch.float64) * self.probability_scale).expand(P, L).clone()
         for p in range(P):
             pts = aerial.points_xy[p][aerial.point_valid[p]].double().numpy()
             lo, hi = pts.min(0) - 2, pts.max(0) + 2
@@ -370,6 +371,27 @@ def test_gate_fraction_blocks_the_fix() -> None:
     assert not result.localized and result.incremental_trajectory is None
     assert np.all(np.isnan(result.T_world_base))
     assert len(result.final_hypotheses) == 0  # no final pass
+
+
+@pytest.mark.parametrize("min_mean", [0.15, None])
+def test_improbable_inliers_give_no_fix(min_mean: float | None) -> None:
+    # The same consistent closures as the module's run, but every hypothesis 6x less probable: the
+    # true ones at 0.05-0.067, below the mean the gate asks for, so no fix (and no final result)
+    # unless the test is off; then the fix comes where the count and fraction allow it.
+    world = World(seed=1)
+    world.bad_submaps = {0, 1, 2, 3}
+    world.corrupt_submaps = {6}
+    world.probability_scale = 1 / 6
+    loc = Localizer(make_map(), _cfg(fix_min_mean_probability=min_mean), world.odometry, world.times,
+                    matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    attempts = [e for e in events if e.attempted]
+    result = loc.finalize()
+    if min_mean is None:
+        assert [e.submap_index for e in events if e.fix_committed] == [10] and result.localized
+    else:
+        assert attempts and not any(e.fix_committed for e in events)
+        assert not result.localized and np.all(np.isnan(result.T_world_base))
 
 
 def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld() -> None:

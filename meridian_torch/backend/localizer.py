@@ -7,7 +7,8 @@ States, per new ground submap:
   on the pool's inliers -> rough trajectory -> re-match every submap so far against the patches
   near its rough position with the rotation prior -> CLIPPER on these fresh candidates. The fix is
   **committed** when they give >= `fix_min_inliers` inliers making up >= `fix_min_inlier_fraction`
-  of the submaps so far: the fresh candidates replace the pool, state "post". A failed attempt
+  of the submaps so far, with a mean hypothesis probability >= `fix_min_mean_probability`: the
+  fresh candidates replace the pool, state "post". A failed attempt
   leaves the pool untouched.
 - "post": the submap is matched with the rotation prior against the patches near its pose
   predicted from the last optimized pose carried forward by odometry; its candidates join the
@@ -241,9 +242,14 @@ class Localizer:
         self.pool = pool
         self._pool_edges = (len(pool), edges) if edges is not None else None
 
-    def _gate(self, n_inliers: int, n_submaps: int) -> bool:
+    def _gate(self, inliers: LoopClosureCandidates, n_submaps: int) -> bool:
+        """The fix gate: enough inlier loop closures, for enough of the submaps, probable enough on
+        average (a wrong fix is built from closures that each align little of their submap)."""
         b = self.cfg.backend
-        return n_inliers >= b.fix_min_inliers and n_inliers >= b.fix_min_inlier_fraction * n_submaps
+        n = len(inliers)
+        if n < b.fix_min_inliers or n < b.fix_min_inlier_fraction * n_submaps:
+            return False
+        return b.fix_min_mean_probability is None or float(inliers.probability.mean()) >= b.fix_min_mean_probability
 
     def _optimize(
         self, inliers: LoopClosureCandidates, n_nodes: int, covariance: bool | Literal["last"] = False
@@ -431,7 +437,7 @@ class Localizer:
                 attempted = True
                 fresh = self._attempt_candidates(sel, n_nodes)
                 sel2 = self._inliers(fresh)
-                if self._gate(sel2.count, len(self.submaps)):
+                if self._gate(fresh.select(sel2.inliers), len(self.submaps)):
                     committed = True
                     self._set_pool(fresh, sel2.edges)
                     self.state = "post"
@@ -542,15 +548,15 @@ class Localizer:
         if n_accepted:
             inliers = self._accepted(sel)
             sol = self._optimize(inliers, n)
-            if self._gate(n_accepted, n_sub):
+            if self._gate(inliers, n_sub):
                 best = (sol, inliers)
             if b.final_rematch:
                 if progress:
                     progress(f"final pass: re-matching {n_sub} submaps with the rotation prior")
                 fresh = self._rematch(sol.T_world_base, self.submaps)
                 sel2 = self._inliers(fresh, in_windows=True)  # its graph is nearly complete: bounded
-                if self._gate(sel2.count, n_sub):
-                    inliers2 = fresh.select(sel2.inliers)
+                inliers2 = fresh.select(sel2.inliers)
+                if self._gate(inliers2, n_sub):
                     best = (self._optimize(inliers2, n), inliers2)
         rejected: list[str] = []
         if best is not None:
