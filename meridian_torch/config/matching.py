@@ -208,7 +208,12 @@ class CoarseSearchConfig(StrictModel):
 
     cell_m: float = Field(default=2.0, gt=0, description="raster cell size of map and submap")
     radius_m: float = Field(default=40.0, gt=0, description="submap disk around its centre that is correlated")
-    yaws: int = Field(default=36, ge=1, description="yaw grid of T_world_odom over [0, 2 pi)")
+    yaws: int = Field(
+        default=72,
+        ge=1,
+        description="yaw grid of T_world_odom over [0, 2 pi); a step of d deg misplaces an older submap of the "
+        "chain by up to sin(d / 2) of the path since",
+    )
     classes: int = Field(
         default=1,
         ge=1,
@@ -229,7 +234,7 @@ class CoarseSearchConfig(StrictModel):
         "correlate perfectly with anything",
     )
     chain_decay: float = Field(
-        default=0.9, ge=0, le=1, description="weight of the previous submaps' chain volume (0 = single submaps)"
+        default=0.95, ge=0, le=1, description="weight of the previous submaps' chain volume (0 = single submaps)"
     )
     chain_slack_m: float = Field(
         default=2.0, ge=0, description="odometry drift allowed between successive submaps (max-pool radius)"
