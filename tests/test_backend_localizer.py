@@ -106,6 +106,7 @@ class World:
         self.shift_m: dict[int, float] = {}  # the correct hypothesis is shifted this far along x
         self.probability_scale = 1.0  # of every hypothesis probability (0.4, 0.3, 0.2 by rank)
         self.calls: list[tuple[int, bool]] = []  # (submap, with rotation prior)
+        self.priors: list[object] = []  # the rotation prior of each call
 
     def submaps(self) -> list[GroundSubmap]:
         out = []
@@ -142,6 +143,7 @@ class World:
     def matcher(self, ground, aerial, *, rotation_prior, config, generator) -> Hypotheses:
         i = int(ground.point_segment_ids[0])
         self.calls.append((i, rotation_prior is not None))
+        self.priors.append(rotation_prior)
         P, L, m = len(aerial), 3, 5
         k = self.submap_frames[i]
         true_xy = self.gt.poses[k][:2, 3]
@@ -158,8 +160,8 @@ class World:
             centre = centre[np.linalg.norm(centre - true_xy, axis=1) >= 20.0][:L]
             yaw = (
                 self.rng.uniform(-math.pi, math.pi, size=L)
-                if rotation_prior is None
-                else rotation_prior + self.rng.normal(0, 0.2, size=L)
+                if rotation_prior is None  # one yaw for all patches or one per patch
+                else float(torch.as_tensor(rotation_prior).reshape(-1).expand(P)[p]) + self.rng.normal(0, 0.2, size=L)
             )
             T_wb_odom = se2_matrix(torch.as_tensor(yaw), torch.zeros(L, 2)).numpy()
             # choose t so that the submap centre maps to `centre`
@@ -669,6 +671,32 @@ def test_coarse_mode_fuses_the_frames_global_descriptors_when_asked(fusion: str)
         other = dataclasses.replace(submap, frame_descriptors=torch.randn(2, D + 1))
         with pytest.raises(ConfigError, match="5 dimensions, the aerial map's 4"):
             SubmapMatching(aerial_map, cfg, world.matcher, 0, StageSeconds()).place_recognition_patches(other)
+
+
+@pytest.mark.parametrize("yaw_prior", [True, False])
+def test_coarse_candidates_are_matched_with_the_chains_yaw_when_asked(yaw_prior: bool) -> None:
+    from meridian_torch.matching.place_recognition import CoarseSearch
+
+    world = World(seed=2, n_frames=120)
+    cfg = _cfg(final_rematch=False)
+    pr = cfg.matching.place_recognition.model_copy(
+        update={"mode": "coarse", "k_coarse": 4, "coarse_yaw_prior": yaw_prior})
+    cfg = cfg.model_copy(update={"matching": cfg.matching.model_copy(update={"place_recognition": pr})})
+    aerial_map = make_map()
+    loc = Localizer(aerial_map, cfg, world.odometry, world.times, matcher=world.matcher)
+    submaps = world.submaps()[:3]
+    for s in submaps:
+        loc.add_submap(s)
+    # the chain computed from its parts: each submap's top 4 patches and the chain's yaw there
+    search = CoarseSearch(aerial_map.primitives, torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64),
+                          pr.coarse)
+    for k, s in enumerate(submaps):
+        priors = search.add_submap(s.primitives, torch.as_tensor(s.T_odom_base[:2, 3]))
+        top = priors.score.topk(4).indices
+        if yaw_prior:
+            assert torch.equal(torch.as_tensor(world.priors[k]), priors.yaw[top].double())
+        else:
+            assert world.priors[k] is None
 
 
 def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int):

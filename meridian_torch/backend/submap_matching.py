@@ -41,9 +41,11 @@ class SubmapMatching:
         self._generator = torch.Generator(device=device).manual_seed(seed)
         self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
         self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
+        # the coarse chain's yaw at each patch of the last place_recognition_patches (coarse_yaw_prior)
+        self.yaw_priors: torch.Tensor | None = None
 
     def match(
-        self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | None
+        self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | torch.Tensor | None
     ) -> LoopClosureCandidates:
         if len(patches) == 0:
             return LoopClosureCandidates.empty()
@@ -73,16 +75,19 @@ class SubmapMatching:
                 )
             valid = torch.ones(1, frames.shape[0], dtype=torch.bool, device=frames.device)
             similarity = stack_similarity(frames[None], valid, self.aerial_map.global_descriptors)
-        coarse_scores = None
+        coarse_scores = coarse_yaw = None
         if resolved_mode(pr, n_patches) == "coarse":
             if self._coarse is None:
                 with stage("coarse map"):
                     self._coarse = CoarseSearch(self.aerial_map.primitives, self._patch_bounds, pr.coarse)
             with stage("coarse search"):
                 centre = torch.as_tensor(submap.T_odom_base[:2, 3])
-                coarse_scores = self._coarse.add_submap(submap.primitives, centre).score[None]
+                priors = self._coarse.add_submap(submap.primitives, centre)
+                coarse_scores, coarse_yaw = priors.score[None], priors.yaw
         idx, ok = select_patches(pr, 1, n_patches, similarity=similarity, coarse_scores=coarse_scores)
-        return idx[0][ok[0]].cpu()
+        patches = idx[0][ok[0]].cpu()
+        self.yaw_priors = coarse_yaw[patches].double() if pr.coarse_yaw_prior and coarse_yaw is not None else None
+        return patches
 
     def near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:
         """Patches near each predicted position (S, 2), largest disk overlap first."""

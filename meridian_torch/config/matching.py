@@ -259,6 +259,11 @@ class PlaceRecognitionConfig(StrictModel):
         "k_coarse above it. Matching every patch costs about 7 ms per patch and submap on 2 cores until the fix",
     )
     k_global: int = Field(default=25, ge=1, description="K_global: patches per submap in 'global' mode (paper)")
+    coarse_yaw_prior: bool = Field(
+        default=True,
+        description="'coarse' mode: match each candidate patch with the chain's yaw of T_world_odom at that "
+        "patch as its rotation prior, instead of free rotation (false: free rotation)",
+    )
     k_coarse: int = Field(
         default=100,
         ge=1,
