@@ -658,7 +658,7 @@ def test_coarse_mode_fuses_the_frames_global_descriptors_when_asked(fusion: str)
     # the submap's second frame looks like patch 7
     submap = dataclasses.replace(submap, frame_descriptors=torch.stack([submap.frame_descriptors[0],
                                                                          aerial_map.global_descriptors[7]]))
-    patches = SubmapMatching(aerial_map, cfg, world.matcher, 0, StageSeconds()).place_recognition_patches(submap)
+    patches, _ = SubmapMatching(aerial_map, cfg, world.matcher, 0, StageSeconds()).place_recognition_patches(submap)
     bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
     coarse = CoarseSearch(aerial_map.primitives, bounds, pr.coarse).add_submap(
         submap.primitives, torch.as_tensor(submap.T_odom_base[:2, 3])).score[None]

@@ -421,8 +421,8 @@ class Localizer:
         attempted = committed = revoked = False
         if self.state == "pre":
             with stage("place recognition"):
-                patches = self._matching.place_recognition_patches(submap)
-            new = self._matching.match(submap, patches, self._matching.yaw_priors)
+                patches, yaw_priors = self._matching.place_recognition_patches(submap)
+            new = self._matching.match(submap, patches, yaw_priors)
             self.submap_hypotheses[submap.index] = new
             self.submap_matching_mode[submap.index] = "place_recognition"
             self.pool = LoopClosureCandidates.concat([self.pool, new])

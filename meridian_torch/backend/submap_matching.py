@@ -41,8 +41,6 @@ class SubmapMatching:
         self._generator = torch.Generator(device=device).manual_seed(seed)
         self._patch_bounds = torch.as_tensor(aerial_map.patches.bounds_xy, dtype=torch.float64)
         self._coarse: CoarseSearch | None = None  # built on the first submap that needs it
-        # the coarse chain's yaw at each patch of the last place_recognition_patches (coarse_yaw_prior)
-        self.yaw_priors: torch.Tensor | None = None
 
     def match(
         self, submap: GroundSubmap, patches: torch.Tensor, rotation_prior: float | torch.Tensor | None
@@ -62,7 +60,9 @@ class SubmapMatching:
             quality_scope=self.cfg.backend.quality_scope,
         )
 
-    def place_recognition_patches(self, submap: GroundSubmap) -> torch.Tensor:
+    def place_recognition_patches(self, submap: GroundSubmap) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The patches to match `submap` against before the fix, and their rotation priors: the
+        coarse chain's yaw at each patch (`coarse_yaw_prior`), or None (free rotation)."""
         pr = self.cfg.matching.place_recognition
         n_patches = len(self.aerial_map)
         similarity = None
@@ -86,8 +86,7 @@ class SubmapMatching:
                 coarse_scores, coarse_yaw = priors.score[None], priors.yaw
         idx, ok = select_patches(pr, 1, n_patches, similarity=similarity, coarse_scores=coarse_scores)
         patches = idx[0][ok[0]].cpu()
-        self.yaw_priors = coarse_yaw[patches].double() if pr.coarse_yaw_prior and coarse_yaw is not None else None
-        return patches
+        return patches, coarse_yaw[patches].double() if pr.coarse_yaw_prior and coarse_yaw is not None else None
 
     def near_patches(self, xy: np.ndarray) -> list[torch.Tensor]:
         """Patches near each predicted position (S, 2), largest disk overlap first."""
