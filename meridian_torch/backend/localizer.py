@@ -437,13 +437,14 @@ class Localizer:
                 attempted = True
                 fresh = self._attempt_candidates(sel, n_nodes)
                 sel2 = self._inliers(fresh)
-                if self._gate(fresh.select(sel2.inliers), len(self.submaps)):
+                fix_inliers = fresh.select(sel2.inliers)
+                if self._gate(fix_inliers, len(self.submaps)):
                     committed = True
                     self._set_pool(fresh, sel2.edges)
                     self.state = "post"
                     self.fix_submap_index, self.fix_time = submap.index, available_time
                     self._fix_position = len(self.submaps) - 1
-                    self._anchor(fresh.select(sel2.inliers), n_nodes, available_time)
+                    self._anchor(fix_inliers, n_nodes, available_time)
                     self._commit(sel2.inliers)
                     n_inliers = sel2.count
         else:

@@ -95,7 +95,7 @@ class BackendConfig(StrictModel):
         default=0.15,
         gt=0,
         le=1,
-        description="... and the inliers' mean hypothesis probability >= this (None: no such test). Measured on "
+        description="... and the inliers' mean hypothesis probability >= this (null: no such test). Measured on "
         "the KITTI-map and demo worlds: wrong attempts averaged 0.065-0.110, right fixes 0.245-0.473, "
         "and the final inliers of whole runs 0.24-0.42",
     )
