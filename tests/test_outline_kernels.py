@@ -1,11 +1,12 @@
 """The outlines' compiled kernels (`mapping.primitives.outline_kernels`): the Delaunay triangulation
 against qhull and against the definition (no point inside a triangle's circumcircle), the alpha
-complex's boundary and its loops against their plain definitions, the convex hull against qhull's.
+complex's boundary, its loops and its filled pieces against their plain definitions, the convex hull against qhull's.
 (Outlines from the compiled triangulation against qhull's: tests/test_segment_to_primitives.py.)"""
 
 from __future__ import annotations
 
 import numpy as np
+import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay, QhullError
@@ -13,8 +14,11 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError
 from meridian_torch.mapping.primitives.outline import alpha_shape_outline
 from meridian_torch.mapping.primitives.outline_kernels import (
     alpha_boundary_edges,
+    alpha_kept_triangles,
     convex_hull,
     delaunay,
+    filled_pieces,
+    minor_variance_lower_bound,
     simple_loops,
 )
 
@@ -160,7 +164,9 @@ def test_alpha_boundary_edges_are_the_edges_of_exactly_one_kept_triangle():
         pts = g + rng.uniform(-1e3, 1e3, 2)
         tri = Delaunay(pts + rng.uniform(-1e-7, 1e-7, pts.shape))
         radius = float(rng.choice([0.25, 0.5, 1.0]))
-        edges = alpha_boundary_edges(pts, tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64), radius)
+        simplices = tri.simplices.astype(np.int64)
+        keep = alpha_kept_triangles(pts, simplices, radius)
+        edges = alpha_boundary_edges(simplices, tri.neighbors.astype(np.int64), keep, len(pts))
         count: dict[tuple[int, int], int] = {}
         for t in tri.simplices:
             a, b, c = pts[t]
@@ -208,3 +214,55 @@ def test_convex_hull_of_degenerate_input_has_fewer_than_three_corners():
         assert len(convex_hull(xy)) < 3
     assert len(convex_hull(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]))) == 3
 
+
+
+def _ragged_lattice(rng: np.random.Generator) -> np.ndarray:
+    """Lattice points (0.3 m) of one or two blobs with pixels dropped at random: pinches, holes, islands."""
+    side = int(rng.integers(6, 30))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2) * 0.3
+    inside = np.zeros(len(g), bool)
+    for _ in range(int(rng.integers(1, 3))):
+        inside |= np.linalg.norm(g - rng.uniform(0.0, 0.3 * side, 2), axis=1) < rng.uniform(0.6, 0.2 * side)
+    return g[inside & (rng.random(len(g)) >= rng.choice([0.0, 0.15, 0.3]))] + rng.uniform(-1e3, 1e3, 2)
+
+
+def test_filled_pieces_count_the_parts_of_the_polygonized_boundary():
+    """The kept triangles' filled pieces are the parts of what the outline's GEOS path builds from the
+    boundary edges (their faces polygonized and unioned), on qhull triangulations of ragged lattices."""
+    rng = np.random.default_rng(17)
+    counts: dict[int, int] = {}
+    for _ in range(80):
+        pts = _ragged_lattice(rng)
+        if len(pts) < 4:
+            continue
+        tri = Delaunay(pts + rng.uniform(-1e-7, 1e-7, pts.shape))
+        simplices, neighbours = tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64)
+        keep = alpha_kept_triangles(pts, simplices, float(rng.choice([0.25, 0.5, 1.0])))
+        edges = alpha_boundary_edges(simplices, neighbours, keep, len(pts))
+        union = shapely.union_all(shapely.get_parts(shapely.polygonize(shapely.linestrings(pts[edges]))))
+        expected = 0 if union.is_empty else shapely.get_num_geometries(union)
+        pieces = filled_pieces(neighbours, keep)
+        assert pieces == expected
+        counts[min(pieces, 2)] = counts.get(min(pieces, 2), 0) + 1
+    assert counts[1] > 10 and counts[2] > 10
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1), n=st.integers(1, 3000), thin=st.sampled_from([0.0, 1e-3, 0.1, 1.0]),
+    offset=st.sampled_from([0.0, 4321.7, -29876.5]),
+)
+def test_minor_variance_bound_is_below_lapacks_eigenvalue_and_close(seed: int, n: int, thin: float, offset: float):
+    """The bound never exceeds the smallest eigenvalue NumPy/LAPACK find for the population
+    covariance (so a bound above a threshold decides the thin-line rule as before), and is within
+    rounding of it; thin, turned bars far from the origin included."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0.0, np.pi)
+    turn = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+    xy = (rng.normal(0.0, 1.0, (n, 2)) * [rng.uniform(0.5, 20.0), thin]) @ turn + offset
+    centred = xy - xy.mean(axis=0)
+    covariance = centred.T @ centred / n
+    smallest = np.linalg.eigh(covariance)[0][0]
+    bound = minor_variance_lower_bound(xy)
+    assert bound <= smallest
+    assert smallest - bound <= 2e-9 * np.trace(covariance) + 1e-12

@@ -15,7 +15,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay
 
 from meridian_torch.config.mapping import PrimitiveConfig
-from meridian_torch.mapping.primitives import line_fusion, outline
+from meridian_torch.mapping.primitives import conversion, line_fusion, outline
 from meridian_torch.mapping.primitives.conversion import (
     _covariance,
     _diameter,
@@ -309,6 +309,50 @@ def test_outlines_equal_those_of_qhulls_triangulation(monkeypatch):
             shapes += 1
             assert np.array_equal(compiled, reference)
     assert shapes > 40
+
+
+def test_outlines_are_the_same_without_the_filled_pieces_shortcut(monkeypatch):
+    """Shapes whose boundary has several loops (holes, islands, pinches) are refused by counting the
+    filled pieces before GEOS or the ring test see them; without that shortcut the outlines (and
+    refusals) are the same."""
+    rng = np.random.default_rng(23)
+    several = refused = 0
+    calls = []
+    counting = outline.filled_pieces
+    monkeypatch.setattr(outline, "filled_pieces", lambda *a: calls.append(counting(*a)) or calls[-1])
+    for _ in range(80):
+        pts = segment_like_points(rng, 6.0)
+        if rng.random() < 0.5:  # a second shape, overlapping, touching or apart
+            pts = np.concatenate([pts, segment_like_points(rng, 4.0) + rng.uniform(-12.0, 12.0, 2)])
+        pts = pts[rng.random(len(pts)) >= rng.choice([0.0, 0.2, 0.4])] + rng.uniform(-900.0, 900.0, 2)
+        n_calls = len(calls)
+        shortcut = alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m)
+        several += len(calls) > n_calls
+        refused += len(calls) > n_calls and calls[-1] > 1
+        with monkeypatch.context() as m:
+            m.setattr(outline, "filled_pieces", lambda *a: 1)
+            reference = alpha_shape_outline(pts, CFG.alpha, CFG.alpha_grid_m)
+        assert (shortcut is None) == (reference is None)
+        if shortcut is not None:
+            assert np.array_equal(shortcut, reference)
+    assert several > 20 and refused > 10
+
+
+def test_conversion_is_the_same_without_the_thin_line_screen(monkeypatch):
+    """The thin-line rule's bound only spares segments LAPACK's eigen-decomposition: without it
+    (every segment decomposed) the primitives are the same, bit for bit, thin bars included."""
+    rng = np.random.default_rng(29)
+    segments = [segment_like_points(rng, 5.0) + rng.uniform(-500.0, 500.0, 2) for _ in range(40)]
+    for width in (0.1, 0.2, 0.3):  # bars 1-3 pixels wide: variance near the rule's threshold
+        bar = rotate(grid(0.0, rng.uniform(2.0, 12.0), 0.0, width), rng.uniform(0.0, np.pi))
+        segments.append(bar + rng.uniform(-500.0, 500.0, 2))
+    descriptors = torch.from_numpy(rng.normal(size=(len(segments), 8)))
+    screened = convert(segments, descriptors)
+    monkeypatch.setattr(conversion, "minor_variance_lower_bound", lambda points: -np.inf)
+    reference = convert(segments, descriptors)
+    assert len(reference.line_endpoints) > 0 and len(reference.points_xy) > 0
+    for field in ("points_xy", "point_segment_ids", "line_endpoints", "line_segment_ids", "line_descriptors"):
+        assert torch.equal(getattr(screened, field), getattr(reference, field))
 
 
 def test_grid_downsample_one_point_per_cell_equals_the_cell_means():

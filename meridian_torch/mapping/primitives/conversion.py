@@ -16,7 +16,7 @@ from meridian_torch.mapping.primitives.outline import (
     signed_area,
     simplified_outline_edges,
 )
-from meridian_torch.mapping.primitives.outline_kernels import convex_hull
+from meridian_torch.mapping.primitives.outline_kernels import convex_hull, minor_variance_lower_bound
 from meridian_torch.types import LineKind, PrimitiveSet
 
 __all__ = ["segments_to_primitives", "fit_circle"]
@@ -92,7 +92,8 @@ def _convert_segment(
         centre = points.mean(axis=0)
         return (centre, None) if inside_box(centre, box) else (None, None)
 
-    if cfg.thin_line_max_minor_var_m2 > 0 and len(points) > 1:
+    thin_line = cfg.thin_line_max_minor_var_m2 > 0 and len(points) > 1
+    if thin_line and minor_variance_lower_bound(points) < cfg.thin_line_max_minor_var_m2:
         mean = points.mean(axis=0)
         evals, evecs = np.linalg.eigh(_covariance(points - mean))
         if evals[0] < cfg.thin_line_max_minor_var_m2:

@@ -9,8 +9,10 @@ from scipy.spatial import Delaunay, QhullError
 
 from meridian_torch.mapping.primitives.outline_kernels import (
     alpha_boundary_edges,
+    alpha_kept_triangles,
     boundary_band,
     delaunay,
+    filled_pieces,
     grid_means,
     simple_loops,
 )
@@ -81,10 +83,14 @@ def alpha_shape_outline(
     simplices, neighbors = _triangulation(pts + _jitter(len(pts)) * grid_m)
     if simplices is None:
         return None
-    edges = alpha_boundary_edges(pts, simplices, neighbors, radius)
+    keep = alpha_kept_triangles(pts, simplices, radius)
+    edges = alpha_boundary_edges(simplices, neighbors, keep, len(pts))
     if len(edges) < 3:
         return None
     loop_vertices, loop_starts, simple = simple_loops(edges, len(pts))
+    several_loops = not simple or loop_starts.shape[0] > 2
+    if several_loops and filled_pieces(neighbors, keep) > 1:  # what GEOS or the test below would find
+        return None
     if not simple:  # a vertex shared by several boundary loops: let GEOS sort it out
         shape = shapely.union_all(shapely.get_parts(shapely.polygonize(shapely.linestrings(pts[edges]))))
         if not isinstance(shape, shapely.Polygon) or shape.is_empty:

@@ -6,7 +6,9 @@ half of building an aerial patch, much of it in per-segment call overheads (a 60
 segments); every kernel but `delaunay` computes bit for bit what that code computed (tests against
 the plain definitions), and the maps named below are byte for byte the same. Also here: the convex
 hull of a segment's points (`convex_hull`, for its diameter and a ground segment's area): qhull's
-vertices, turns within the coordinates' rounding merged as qhull merges them.
+vertices, turns within the coordinates' rounding merged as qhull merges them; and a bound on the
+smallest principal variance of a segment's points (`minor_variance_lower_bound`), which spares
+most segments LAPACK's eigen-decomposition in the thin-line rule.
 
 qhull (scipy.spatial.Delaunay) triangulates in any dimension through a lifted convex hull and
 costs 4-9 us per point plus ~0.2 ms per call; an aerial 60 m patch triangulates ~75 outlines
@@ -39,7 +41,10 @@ from numba import njit
 
 from meridian_torch.core.dense_ranks import dense_ranks
 
-__all__ = ["alpha_boundary_edges", "boundary_band", "convex_hull", "delaunay", "grid_means", "simple_loops"]
+__all__ = [
+    "alpha_boundary_edges", "alpha_kept_triangles", "boundary_band", "convex_hull", "delaunay", "filled_pieces",
+    "grid_means", "minor_variance_lower_bound", "simple_loops",
+]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -370,24 +375,69 @@ def grid_means(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.ndarra
 
 
 @njit(cache=True, nogil=True)
-def _morphology(image: np.ndarray, offsets: np.ndarray, dilate: bool) -> np.ndarray:
-    """Binary dilation (max) or erosion (min) of a 0/1 image over the structuring offsets (K, 2);
-    pixels outside the image count as 0 (OpenCV's constant border of value 0)."""
+def _runs(image: np.ndarray, axis: int, forward: bool) -> np.ndarray:
+    """Length of the run of 1s of a 0/1 image ending at each pixel, counted along `axis` (0: rows
+    downward, 1: columns rightward), or from the other side when not `forward`; 0 on 0 pixels."""
     rows, cols = image.shape
-    out = np.empty_like(image)
+    run = np.zeros((rows, cols), np.int64)
+    n_lines, length = (cols, rows) if axis == 0 else (rows, cols)
+    for line in range(n_lines):
+        count = 0
+        for k in range(length):
+            i = k if forward else length - 1 - k
+            y, x = (i, line) if axis == 0 else (line, i)
+            count = count + 1 if image[y, x] != 0 else 0
+            run[y, x] = count
+    return run
+
+
+@njit(cache=True, nogil=True)
+def _square_morphology(image: np.ndarray, dilate: bool) -> np.ndarray:
+    """Binary dilation (max) or erosion (min) of a 0/1 image by the 3 x 3 square, one axis at a time
+    (the square is the product of two 3-pixel lines); pixels outside the image count as 0 (OpenCV's
+    constant border of value 0)."""
+    out = image.copy()
+    rows, cols = image.shape
+    for axis in range(2):
+        src = out.copy()
+        for y in range(rows):
+            for x in range(cols):
+                hit = not dilate
+                for d in range(-1, 2):
+                    yy, xx = (y + d, x) if axis == 0 else (y, x + d)
+                    value = src[yy, xx] if 0 <= yy < rows and 0 <= xx < cols else 0
+                    if dilate and value != 0:
+                        hit = True
+                    if not dilate and value == 0:
+                        hit = False
+                out[y, x] = 1 if hit else 0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _disc_erosion(image: np.ndarray, radius: float) -> np.ndarray:
+    """Binary erosion of a 0/1 image by the disc of offsets dy^2 + dx^2 <= radius^2, outside the
+    image counting as 0: a pixel stays iff for each row offset dy the row y + dy exists and its run
+    of 1s through x reaches the disc's half-width at dy on both sides."""
+    rows, cols = image.shape
+    r = int(math.floor(radius))
+    half = np.zeros(2 * r + 1, np.int64)
+    for dy in range(-r, r + 1):
+        w = 0
+        while (w + 1) * (w + 1) + dy * dy <= radius * radius:
+            w += 1
+        half[dy + r] = w
+    left, right = _runs(image, 1, True), _runs(image, 1, False)
+    out = np.zeros((rows, cols), np.uint8)
     for y in range(rows):
         for x in range(cols):
-            hit = not dilate
-            for k in range(offsets.shape[0]):
-                yy, xx = y + offsets[k, 0], x + offsets[k, 1]
-                value = image[yy, xx] if 0 <= yy < rows and 0 <= xx < cols else 0
-                if dilate and value != 0:
-                    hit = True
+            deep = True
+            for dy in range(-r, r + 1):
+                yy = y + dy
+                if yy < 0 or yy >= rows or left[yy, x] <= half[dy + r] or right[yy, x] <= half[dy + r]:
+                    deep = False
                     break
-                if not dilate and value == 0:
-                    hit = False
-                    break
-            out[y, x] = 1 if hit else 0
+            out[y, x] = 1 if deep else 0
     return out
 
 
@@ -406,19 +456,8 @@ def boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
     occupied = np.zeros((cells[:, 0].max() - lo_x + 3, cells[:, 1].max() - lo_y + 3), np.uint8)
     for i in range(cells.shape[0]):
         occupied[cells[i, 0] - lo_x, cells[i, 1] - lo_y] = 1
-    square = np.empty((9, 2), np.int64)
-    for k in range(9):
-        square[k, 0], square[k, 1] = k // 3 - 1, k % 3 - 1
-    closed = _morphology(_morphology(occupied, square, True), square, False)
-    r = int(math.floor(band_cells))
-    disc = np.empty(((2 * r + 1) ** 2, 2), np.int64)
-    n_disc = 0
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            if dy * dy + dx * dx <= band_cells * band_cells:
-                disc[n_disc, 0], disc[n_disc, 1] = dy, dx
-                n_disc += 1
-    deep = _morphology(closed, disc[:n_disc], False)
+    closed = _square_morphology(_square_morphology(occupied, True), False)
+    deep = _disc_erosion(closed, band_cells)
     band = np.empty(cells.shape[0], np.bool_)
     for i in range(cells.shape[0]):
         band[i] = deep[cells[i, 0] - lo_x, cells[i, 1] - lo_y] == 0
@@ -426,10 +465,9 @@ def boundary_band(cells: np.ndarray, band_cells: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, radius: float) -> np.ndarray:
-    """The boundary of the alpha complex: edges (E, 2) of the triangles with circumradius < radius
-    (abc < 2 r |twice the area|, without a division, so slivers stay out) that lie in exactly one
-    such triangle, each as (smaller, larger) vertex id, sorted; (0, 2) if no triangle is kept."""
+def alpha_kept_triangles(pts: np.ndarray, simplices: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the triangles of the alpha complex: circumradius < radius (abc < 2 r |twice the
+    area|, without a division, so slivers stay out)."""
     n_tri = simplices.shape[0]
     keep = np.zeros(n_tri, np.bool_)
     two_r = radius * 2.0
@@ -443,6 +481,14 @@ def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.n
         ux, uy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
         vx, vy = pts[c, 0] - pts[a, 0], pts[c, 1] - pts[a, 1]
         keep[t] = product < two_r * abs(ux * vy - uy * vx)
+    return keep
+
+
+@njit(cache=True, nogil=True)
+def alpha_boundary_edges(simplices: np.ndarray, neighbors: np.ndarray, keep: np.ndarray, n_points: int) -> np.ndarray:
+    """The boundary of the kept triangles (`alpha_kept_triangles`): edges (E, 2) that lie in exactly
+    one kept triangle, each as (smaller, larger) vertex id, sorted; (0, 2) if no triangle is kept."""
+    n_tri = simplices.shape[0]
     n_edges = 0
     ends = np.empty((3 * n_tri, 2), np.int64)
     for t in range(n_tri):
@@ -454,11 +500,54 @@ def alpha_boundary_edges(pts: np.ndarray, simplices: np.ndarray, neighbors: np.n
                 a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
                 ends[n_edges, 0], ends[n_edges, 1] = min(a, b), max(a, b)
                 n_edges += 1
-    n_pts = pts.shape[0]
     key = np.empty(n_edges, np.int64)
     for e in range(n_edges):
-        key[e] = ends[e, 0] * n_pts + ends[e, 1]
+        key[e] = ends[e, 0] * n_points + ends[e, 1]
     return ends[np.argsort(key)]
+
+
+@njit(cache=True, nogil=True)
+def filled_pieces(neighbors: np.ndarray, keep: np.ndarray) -> int:
+    """How many pieces the kept triangles make once their holes are filled: the triangles that are
+    kept or cut off from the triangulation's outside by kept ones, in groups joined across edges.
+    Pieces meet at most at a vertex, so with 2 or more their union is not one polygon."""
+    n_tri = keep.shape[0]
+    outside = np.zeros(n_tri, np.bool_)  # dropped triangles reachable from the hull's exterior
+    stack = np.empty(n_tri, np.int64)
+    top = 0
+    for t in range(n_tri):
+        if not keep[t] and (neighbors[t, 0] < 0 or neighbors[t, 1] < 0 or neighbors[t, 2] < 0):
+            outside[t] = True
+            stack[top] = t
+            top += 1
+    while top > 0:
+        top -= 1
+        t = stack[top]
+        for k in range(3):
+            other = neighbors[t, k]
+            if other >= 0 and not keep[other] and not outside[other]:
+                outside[other] = True
+                stack[top] = other
+                top += 1
+    seen = outside.copy()
+    pieces = 0
+    for start in range(n_tri):
+        if seen[start]:
+            continue
+        pieces += 1
+        seen[start] = True
+        stack[0] = start
+        top = 1
+        while top > 0:
+            top -= 1
+            t = stack[top]
+            for k in range(3):
+                other = neighbors[t, k]
+                if other >= 0 and not seen[other]:
+                    seen[other] = True
+                    stack[top] = other
+                    top += 1
+    return pieces
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -497,3 +586,30 @@ def convex_hull(xy: np.ndarray) -> np.ndarray:
         hull[k] = order[i]
         k += 1
     return hull[: max(k - 1, 0)].copy()
+
+
+@njit(cache=True, nogil=True)
+def minor_variance_lower_bound(points: np.ndarray) -> float:
+    """A lower bound on the smallest eigenvalue of the points' (n, 2) population covariance, n >= 1:
+    the closed-form 2 x 2 eigenvalue less a margin far above its rounding (1e-9 of the trace; the
+    sums' and the square root's rounding is ~n eps of it), so a bound above a threshold proves the
+    exact eigenvalue is too."""
+    n = points.shape[0]
+    mx, my = 0.0, 0.0
+    for i in range(n):
+        mx += points[i, 0]
+        my += points[i, 1]
+    mx /= n
+    my /= n
+    sxx, sxy, syy = 0.0, 0.0, 0.0
+    for i in range(n):
+        dx, dy = points[i, 0] - mx, points[i, 1] - my
+        sxx += dx * dx
+        sxy += dx * dy
+        syy += dy * dy
+    sxx /= n
+    sxy /= n
+    syy /= n
+    half_gap = 0.5 * (sxx - syy)
+    trace = sxx + syy
+    return 0.5 * trace - math.sqrt(half_gap * half_gap + sxy * sxy) - 1e-9 * trace
