@@ -1,7 +1,8 @@
 """Compiled (numba) kernels of the alpha-shape outlines of segments (`outline.alpha_shape_outline`):
 the grid's cell means (`grid_means`), the band of cells near the border (`boundary_band`), the 2D
-Delaunay triangulation (`delaunay`), the boundary of the alpha complex (`alpha_boundary_edges`)
-and its walk into loops (`simple_loops`). As qhull, NumPy, OpenCV and Python code they took about
+Delaunay triangulation (`delaunay`), the alpha complex (`alpha_kept_triangles`), its boundary
+(`alpha_boundary_edges`), its walk into loops (`simple_loops`) and the pieces of the complex with
+its holes filled (`filled_pieces`, which refuses outlines before GEOS would). As qhull, NumPy, OpenCV and Python code they took about
 half of building an aerial patch, much of it in per-segment call overheads (a 60 m patch has ~75
 segments); every kernel but `delaunay` computes bit for bit what that code computed (tests against
 the plain definitions), and the maps named below are byte for byte the same. Also here: the convex
@@ -375,17 +376,15 @@ def grid_means(points: np.ndarray, grid_m: float) -> tuple[np.ndarray, np.ndarra
 
 
 @njit(cache=True, nogil=True)
-def _runs(image: np.ndarray, axis: int, forward: bool) -> np.ndarray:
-    """Length of the run of 1s of a 0/1 image ending at each pixel, counted along `axis` (0: rows
-    downward, 1: columns rightward), or from the other side when not `forward`; 0 on 0 pixels."""
+def _row_runs(image: np.ndarray, rightward: bool) -> np.ndarray:
+    """Length of the run of 1s of a 0/1 image along its row ending at each pixel, counted from the
+    left (`rightward`) or from the right; 0 on 0 pixels."""
     rows, cols = image.shape
     run = np.zeros((rows, cols), np.int64)
-    n_lines, length = (cols, rows) if axis == 0 else (rows, cols)
-    for line in range(n_lines):
+    for y in range(rows):
         count = 0
-        for k in range(length):
-            i = k if forward else length - 1 - k
-            y, x = (i, line) if axis == 0 else (line, i)
+        for k in range(cols):
+            x = k if rightward else cols - 1 - k
             count = count + 1 if image[y, x] != 0 else 0
             run[y, x] = count
     return run
@@ -396,10 +395,10 @@ def _square_morphology(image: np.ndarray, dilate: bool) -> np.ndarray:
     """Binary dilation (max) or erosion (min) of a 0/1 image by the 3 x 3 square, one axis at a time
     (the square is the product of two 3-pixel lines); pixels outside the image count as 0 (OpenCV's
     constant border of value 0)."""
-    out = image.copy()
     rows, cols = image.shape
+    out = image
     for axis in range(2):
-        src = out.copy()
+        src, out = out, np.empty_like(image)
         for y in range(rows):
             for x in range(cols):
                 hit = not dilate
@@ -427,7 +426,7 @@ def _disc_erosion(image: np.ndarray, radius: float) -> np.ndarray:
         while (w + 1) * (w + 1) + dy * dy <= radius * radius:
             w += 1
         half[dy + r] = w
-    left, right = _runs(image, 1, True), _runs(image, 1, False)
+    left, right = _row_runs(image, True), _row_runs(image, False)
     out = np.zeros((rows, cols), np.uint8)
     for y in range(rows):
         for x in range(cols):
