@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from numerics import assert_close_reassociated
@@ -13,7 +15,8 @@ from meridian_torch.cli import app
 from meridian_torch.config import CONFIG_DIR, load_config
 from meridian_torch.io.map_file import load_aerial_map
 from meridian_torch.io.ortho import Orthophoto, write_orthophoto
-from meridian_torch.mapping.aerial_map import AerialMapper, build_aerial_map
+from meridian_torch.mapping.aerial_map import AerialMapper, _segment_pixels, build_aerial_map
+from meridian_torch.perception.protocols import Segmentation
 from meridian_torch.sim.ortho_render import render_orthophoto
 from meridian_torch.sim.simulate import build_world
 
@@ -65,6 +68,45 @@ def test_map_has_primitives_inside_their_patches(reference_map) -> None:
 
 def test_batched_equals_one_patch_at_a_time(ortho: Orthophoto, reference_map) -> None:
     _assert_same(build_aerial_map(ortho, _mapper(1)), reference_map)
+
+
+class _MasksOnly:
+    """A segmenter whose results carry masks but no label image (as the neural back ends')."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+
+    def segment(self, images: torch.Tensor, meters_per_pixel: float | None) -> Segmentation:
+        seg = self.inner.segment(images, meters_per_pixel)
+        assert seg.labels is not None  # the classical back end gives labels: both paths are run
+        return dataclasses.replace(seg, labels=None)
+
+
+def test_segment_pixels_from_labels_equal_those_from_masks(ortho: Orthophoto, reference_map) -> None:
+    """The map built from the masks alone is the map built from the label image."""
+    mapper = _mapper(4)
+    _assert_same(build_aerial_map(ortho, dataclasses.replace(mapper, segmenter=_MasksOnly(mapper.segmenter))),
+                 reference_map)
+
+
+@pytest.mark.parametrize("n_segments", [1, 7, 300, 70000])
+def test_segment_pixels_of_a_partition_are_torch_nonzeros(n_segments: int) -> None:
+    """Random label images, padded masks, 8-, 16- and 32-bit labels: each segment's pixels in
+    nonzero's order (segment, then row-major) and its count; labels beyond the valid masks are refused."""
+    rng = np.random.default_rng(n_segments)
+    h, w = (20, 30) if n_segments > 1000 else (37, 53)  # most of 70000 segments empty: masks stay small
+    labels = torch.from_numpy(rng.integers(0, n_segments, (1, h, w)))
+    m = n_segments + 2  # padding
+    masks = labels[:, None] == torch.arange(m)[None, :, None, None]
+    valid = torch.arange(m)[None] < n_segments
+    seg = Segmentation(masks=masks, scores=valid.float(), valid=valid, labels=labels)
+    rows, cols, counts = _segment_pixels(seg, 0)
+    idx_m, rows_ref, cols_ref = torch.nonzero(masks[0][valid[0]], as_tuple=True)
+    assert np.array_equal(rows, rows_ref.numpy()) and np.array_equal(cols, cols_ref.numpy())
+    assert np.array_equal(counts, torch.bincount(idx_m, minlength=n_segments).numpy())
+    bad = dataclasses.replace(seg, valid=torch.arange(m)[None] < int(labels.max()))  # the largest label left out
+    with pytest.raises(ValueError, match="labels"):
+        _segment_pixels(bad, 0)
 
 
 def test_worker_processes_build_the_same_map(ortho: Orthophoto, reference_map) -> None:

@@ -75,6 +75,8 @@ def test_masks_partition_the_image(segmenter: ClassicalSegmenter) -> None:
     assert torch.equal(cover, torch.ones_like(cover))  # no overlap, nothing left out
     assert not seg.masks[0, ~seg.valid[0]].any()
     assert ((seg.scores >= 0) & (seg.scores <= 1)).all()
+    assert torch.equal(seg.labels[0], seg.masks[0].to(torch.uint8).argmax(0))  # each pixel's mask
+    assert int(seg.labels.max()) < int(seg.valid[0].sum())  # valid masks come first
 
 
 def test_ground_frame_without_scale(segmenter: ClassicalSegmenter) -> None:

@@ -46,7 +46,7 @@ from meridian_torch.mapping.aerial_engines import described_blocks
 from meridian_torch.mapping.primitives.conversion import segments_to_primitives
 from meridian_torch.mapping.tiling import crop_offsets, tile_image
 from meridian_torch.perception.factory import build_global_describer, build_segment_describer, build_segmenter
-from meridian_torch.perception.protocols import GlobalDescriber, SegmentDescriber, Segmenter
+from meridian_torch.perception.protocols import GlobalDescriber, Segmentation, SegmentDescriber, Segmenter
 from meridian_torch.types import AerialMap, PatchGrid, PrimitiveSet, stack_primitive_sets
 
 __all__ = [
@@ -136,16 +136,11 @@ class AerialMapper:
 
         per_patch: list[list[tuple[np.ndarray, torch.Tensor, np.ndarray, np.ndarray]]] = [[] for _ in boxes]
         for k, (b, col0, row0) in enumerate(crop_origin_px):
-            masks = seg.masks[k][seg.valid[k]]
-            h, w = masks.shape[-2:]
+            h, w = seg.masks.shape[-2:]
             # Mask pixel centres in map-frame metres (the pixel-centre convention of the README's Formats).
             x0, y0 = _corner_in_map_frame(ortho)
-            idx_m, rows, cols = torch.nonzero(masks, as_tuple=True)
-            xy = np.stack([
-                x0 + (col0 + cols.cpu().numpy() + 0.5) * mpp,
-                y0 - (row0 + rows.cpu().numpy() + 0.5) * mpp,
-            ], axis=1)
-            counts = torch.bincount(idx_m, minlength=masks.shape[0]).cpu().numpy()
+            rows, cols, counts = _segment_pixels(seg, k)
+            xy = np.stack([x0 + (col0 + cols + 0.5) * mpp, y0 - (row0 + rows + 0.5) * mpp], axis=1)
             points = np.split(xy, np.cumsum(counts)[:-1])
             box = np.array([x0 + col0 * mpp, x0 + (col0 + w) * mpp, y0 - (row0 + h) * mpp, y0 - row0 * mpp])
             per_patch[b].append((points, desc[k][seg.valid[k]], counts * mpp * mpp, box))
@@ -159,6 +154,24 @@ class AerialMapper:
             prims = segments_to_primitives(points, descs, self.primitives, areas_m2=areas, border_box=boxes_per_segment)
             results.append((prims.to(device="cpu"), global_desc[b].cpu()))
         return results
+
+
+def _segment_pixels(seg: Segmentation, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (rows, columns) of image k's valid segments, segment after segment and row-major
+    within one (as `torch.nonzero` of the masks), and each segment's pixel count."""
+    n = int(seg.valid[k].sum())
+    if seg.labels is None:
+        idx_m, rows, cols = torch.nonzero(seg.masks[k][seg.valid[k]], as_tuple=True)
+        return rows.cpu().numpy(), cols.cpu().numpy(), torch.bincount(idx_m, minlength=n).cpu().numpy()
+    # A partition: one stable sort of the label image (a radix sort at <= 16 bits) instead of a
+    # pass over every mask.
+    labels = seg.labels[k].cpu().numpy()
+    if labels.size and not 0 <= labels.min() <= labels.max() < n:
+        raise ValueError(f"segmentation labels of image {k} span {labels.min()}..{labels.max()}, "
+                         f"not the {n} valid masks")
+    flat = labels.ravel().astype(np.min_scalar_type(max(n - 1, 0)))
+    order = np.argsort(flat, kind="stable")
+    return order // labels.shape[1], order % labels.shape[1], np.bincount(flat, minlength=n)
 
 
 def _to_tensor(images: list[np.ndarray], device: torch.device) -> torch.Tensor:

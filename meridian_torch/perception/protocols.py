@@ -27,11 +27,15 @@ class Segmentation:
         masks: (B, M, H, W) bool, at the input image resolution.
         scores: (B, M) float, back-end confidence in [0, 1] (0 for padding).
         valid: (B, M) bool, False for padding.
+        labels: (B, H, W) int64 or None. When the masks partition each image (the classical back
+            end), this is the index of each pixel's mask, and the valid masks come first. Where
+            there are labels, readers may go over the pixels once instead of over every mask.
     """
 
     masks: torch.Tensor
     scores: torch.Tensor
     valid: torch.Tensor
+    labels: torch.Tensor | None = None
 
     @property
     def num_segments(self) -> torch.Tensor:

@@ -100,7 +100,7 @@ class ClassicalSegmenter:
         score_t = torch.zeros(bsz, m, dtype=images.dtype, device=images.device)
         for i, s in enumerate(scores):
             score_t[i, : len(s)] = torch.from_numpy(s).to(score_t)
-        return Segmentation(masks=masks, scores=score_t, valid=valid)
+        return Segmentation(masks=masks, scores=score_t, valid=valid, labels=label_t)
 
     def _working_geometry(self, h: int, w: int, mpp: float | None) -> tuple[int, int, float]:
         """Working (height, width) and minimum segment area in working pixels."""
