@@ -1,14 +1,17 @@
 """The classical segmenter's compiled region merging (`perception.classical.region_merging`) against
-the plain array steps it replaced (np.unique, lexsort, bincount), and its components against scipy's."""
+the plain array steps it replaced (np.unique, lexsort, bincount), its components against scipy's, and
+the colour steps against np.linalg.norm."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from meridian_torch.perception.classical.region_merging import _components, merge_regions
+from meridian_torch.perception.classical.region_merging import _components, colour_steps, merge_regions
 
 
 def _reference_merge(labels, feats, step_h, step_v, lw, tw, bw, threshold, levels, min_px):
@@ -117,3 +120,22 @@ def test_components_equal_scipy_connected_components():
         count, labels = _components(pairs.astype(np.int64), np.arange(len(pairs)), n)
         assert count == expected_count
         assert np.array_equal(labels, expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1), h=st.integers(1, 40), w=st.integers(1, 40), channels=st.integers(1, 4),
+    scale=st.sampled_from([1e-3, 1.0, 100.0]),
+)
+def test_colour_steps_are_numpys_norms_bit_for_bit(seed: int, h: int, w: int, channels: int, scale: float):
+    """Float32 images of any size (one row or column included) and channel weights: the steps are
+    the segmenter's former NumPy expressions, bitwise."""
+    rng = np.random.default_rng(seed)
+    image = (rng.normal(0.0, scale, (h, w, channels))).astype(np.float32)
+    weights = rng.uniform(0.1, 2.0, channels).astype(np.float32)
+    step_h, step_v = colour_steps(image, weights)
+    expected_h = np.linalg.norm((image[:, 1:] - image[:, :-1]) * weights, axis=-1)
+    expected_v = np.linalg.norm((image[1:] - image[:-1]) * weights, axis=-1)
+    assert step_h.dtype == step_v.dtype == np.float32
+    assert step_h.tobytes() == expected_h.tobytes() and step_h.shape == expected_h.shape
+    assert step_v.tobytes() == expected_v.tobytes() and step_v.shape == expected_v.shape

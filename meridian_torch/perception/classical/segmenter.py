@@ -11,7 +11,7 @@ from skimage.segmentation import slic
 from meridian_torch.core.parallel import thread_map
 from meridian_torch.perception.classical.felzenszwalb import felzenszwalb
 from meridian_torch.perception.classical.pixel_features import check_images
-from meridian_torch.perception.classical.region_merging import merge_regions
+from meridian_torch.perception.classical.region_merging import colour_steps, merge_regions
 from meridian_torch.perception.protocols import Segmentation
 
 __all__ = ["ClassicalSegmenter"]
@@ -156,8 +156,7 @@ class ClassicalSegmenter:
         feats = np.concatenate([lab, contrast[..., None]], axis=-1).astype(np.float64)
         smooth = cv2.GaussianBlur(lab, (0, 0), 0.7)
         wl = np.array([self.lightness_weight, 1.0, 1.0], dtype=np.float32)
-        step_h = np.linalg.norm((smooth[:, 1:] - smooth[:, :-1]) * wl, axis=-1)
-        step_v = np.linalg.norm((smooth[1:] - smooth[:-1]) * wl, axis=-1)
+        step_h, step_v = colour_steps(smooth, wl)
         lut, edges, weight, border_len = merge_regions(
             labels, feats, step_h, step_v, self.lightness_weight, self.texture_weight, self.boundary_weight,
             self.merge_threshold, self.merge_levels, min_px,
