@@ -92,11 +92,11 @@ def _convert_segment(
         centre = points.mean(axis=0)
         return (centre, None) if inside_box(centre, box) else (None, None)
 
-    thin_line = cfg.thin_line_max_minor_var_m2 > 0 and len(points) > 1
-    if thin_line and minor_variance_lower_bound(points) < cfg.thin_line_max_minor_var_m2:
+    max_minor_var = cfg.thin_line_max_minor_var_m2
+    if max_minor_var > 0 and len(points) > 1 and minor_variance_lower_bound(points) < max_minor_var:
         mean = points.mean(axis=0)
         evals, evecs = np.linalg.eigh(_covariance(points - mean))
-        if evals[0] < cfg.thin_line_max_minor_var_m2:
+        if evals[0] < max_minor_var:
             t = (points - mean) @ evecs[:, 1]
             line = mean + np.outer([t.min(), t.max()], evecs[:, 1])
             ok = inside_box(line, box).all() and t.max() - t.min() > cfg.line_min_length_m

@@ -22,29 +22,30 @@ from meridian_torch.core.union_find import find_root
 __all__ = ["colour_steps", "merge_regions"]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _colour_step(image: np.ndarray, weights: np.ndarray, y: int, x: int, y2: int, x2: int) -> np.float32:
+    total = np.float32(0.0)
+    for k in range(image.shape[2]):
+        d = (image[y2, x2, k] - image[y, x, k]) * weights[k]
+        total += d * d
+    return np.sqrt(total)
+
+
 @njit(cache=True, nogil=True)
 def colour_steps(image: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """|(b - a) * weights| of the horizontal (H, W - 1) and vertical (H - 1, W) neighbour pairs of an
     (H, W, C) float32 image, in float32: each difference, product and square rounded, the channels
-    summed in order, so the bits of NumPy's `np.linalg.norm((b - a) * weights, axis=-1)` in one
-    pass instead of six array passes."""
-    h, w, c = image.shape
+    summed in order, so the bits of NumPy's `np.linalg.norm((b - a) * weights, axis=-1)` without
+    its six array passes."""
+    h, w, _ = image.shape
     step_h = np.empty((h, max(w - 1, 0)), np.float32)
     step_v = np.empty((max(h - 1, 0), w), np.float32)
     for y in range(h):
+        for x in range(w - 1):
+            step_h[y, x] = _colour_step(image, weights, y, x, y, x + 1)
+    for y in range(h - 1):
         for x in range(w):
-            for vertical in range(2):
-                y2, x2 = (y + 1, x) if vertical else (y, x + 1)
-                if y2 == h or x2 == w:
-                    continue
-                total = np.float32(0.0)
-                for k in range(c):
-                    d = (image[y2, x2, k] - image[y, x, k]) * weights[k]
-                    total += d * d
-                if vertical:
-                    step_v[y, x] = np.sqrt(total)
-                else:
-                    step_h[y, x] = np.sqrt(total)
+            step_v[y, x] = _colour_step(image, weights, y, x, y + 1, x)
     return step_h, step_v
 
 
