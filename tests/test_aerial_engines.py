@@ -170,6 +170,27 @@ def test_results_kept_from_local_workers_hold_no_file_descriptors(ortho_files) -
     assert after - before < len(grid), f"{after - before} descriptors left open by {len(grid)} kept patches"
 
 
+def test_worker_arrays_become_tensors_the_caller_can_write() -> None:
+    """Ray returns a block's arrays as read-only views of its object store: those are copied (kept
+    as they are, the tensors could not be written and would hold the store's memory while the
+    caller keeps them); the local pool's own arrays are taken without a copy."""
+    from meridian_torch.mapping.aerial_engines import _from_arrays
+
+    rng = np.random.default_rng(0)
+    patch = {"points_xy": rng.normal(size=(3, 2)), "point_descriptors": rng.normal(size=(3, 8)),
+             "point_segment_ids": np.arange(3), "line_endpoints": rng.normal(size=(2, 2, 2)),
+             "line_kinds": np.ones(2, dtype=np.int64), "line_descriptors": rng.normal(size=(2, 8)),
+             "line_segment_ids": np.arange(2)}
+    desc = rng.normal(size=16).astype(np.float32)
+    for writable in (True, False):
+        for a in [*patch.values(), desc]:
+            a.setflags(write=writable)
+        ((primitives, global_desc),) = _from_arrays([(patch, desc)])
+        for name, tensor, source in [*((n, getattr(primitives, n), patch[n]) for n in patch), ("desc", global_desc, desc)]:
+            assert torch.equal(tensor, torch.from_numpy(source.copy())), name
+            assert np.shares_memory(tensor.numpy(), source) == writable, (name, writable)
+
+
 def test_interrupted_file_build_resumes_with_other_workers(ortho_files, reference_map, tmp_path: Path) -> None:
     out = tmp_path / "map.mtm"
     with pytest.raises(KeyboardInterrupt):

@@ -64,6 +64,14 @@ def described_blocks(
         yield from _local_blocks(ortho, grid, mapper, blocks)
 
 
+# A BlockResult as NumPy arrays, as workers send it back. Tensors sent through a local pool travel
+# as shared-memory file descriptors, one per tensor, held open as long as the receiver keeps the
+# tensor, so a caller holding a whole map (`build_aerial_map`, 4 km^2: about 35 000 tensors) ran
+# out of descriptors; through Ray each tensor's storage is pickled by `torch.save`, 8x the time of
+# its array (a 4-patch block: 8.1 against 1.0 ms to put and get). Arrays travel by value.
+_ArrayResult = list[tuple[dict[str, np.ndarray], np.ndarray]]
+
+
 class _BlockDescriber:
     """A worker's state: the orthophoto (opened on first read), the grid and the mapper."""
 
@@ -72,8 +80,9 @@ class _BlockDescriber:
         set_blas_threads(1)
         self.state = (ortho, grid, mapper)
 
-    def describe(self, indices: np.ndarray) -> BlockResult:
-        return describe_block(*self.state, indices)
+    def describe(self, indices: np.ndarray) -> _ArrayResult:
+        """A block as arrays, to travel back to the driver (`_ArrayResult`)."""
+        return [(prims.arrays(), global_desc.numpy()) for prims, global_desc in describe_block(*self.state, indices)]
 
 
 _worker: _BlockDescriber | None = None  # a local pool worker's state
@@ -84,21 +93,22 @@ def _init_worker(ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: 
     _worker = _BlockDescriber(ortho, grid, mapper)
 
 
-_ArrayResult = list[tuple[dict[str, np.ndarray], np.ndarray]]  # a BlockResult as NumPy arrays
-
-
 def _describe_in_worker(indices: np.ndarray) -> _ArrayResult:
-    """A block described in a pool worker, returned as arrays: tensors sent through the pool travel
-    as shared-memory file descriptors, one per tensor, held open as long as the receiver keeps the
-    tensor, so a caller holding a whole map (`build_aerial_map`, 4 km^2: about 35 000 tensors) ran
-    out of descriptors. Arrays travel by value."""
+    """A block described in a pool worker."""
     assert _worker is not None, "worker not initialized"
-    return [(prims.arrays(), global_desc.numpy()) for prims, global_desc in _worker.describe(indices)]
+    return _worker.describe(indices)
 
 
 def _from_arrays(block: _ArrayResult) -> BlockResult:
-    """A pool worker's arrays as the block's primitives and global descriptors again."""
-    return [(PrimitiveSet.from_arrays(arrays), torch.from_numpy(global_desc)) for arrays, global_desc in block]
+    """A worker's arrays as the block's primitives and global descriptors again. Arrays from Ray are
+    read-only views of its object store: those are copied, so that the tensors can be written and
+    the store does not keep every block the caller holds."""
+
+    def owned(a: np.ndarray) -> np.ndarray:
+        return a if a.flags.writeable else a.copy()
+
+    return [(PrimitiveSet.from_arrays({name: owned(a) for name, a in arrays.items()}), torch.from_numpy(owned(desc)))
+            for arrays, desc in block]
 
 
 def _local_blocks(
@@ -125,7 +135,7 @@ def _local_blocks(
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _in_order(ray, actors: list, blocks: list[np.ndarray], depth: int = 2) -> Iterator[BlockResult]:
+def _in_order(ray, actors: list, blocks: list[np.ndarray], depth: int = 2) -> Iterator:
     """The actors' results of `blocks`, in block order: depth x actors blocks are in flight or
     waiting for the one before them, and each block taken frees a slot for the actor with the
     fewest blocks queued. (Ray's ActorPool frees an actor only once its result is taken in order,
@@ -195,7 +205,8 @@ def _ray_blocks(
         actor_class = ray.remote(num_cpus=1, num_gpus=gpus)(_BlockDescriber)
         state = [ray.put(v) for v in (ortho, grid, mapper)]  # stored once, shared by the actors
         actors = [actor_class.remote(*state) for _ in range(min(aerial.workers, len(blocks), capacity))]
-        yield from _in_order(ray, actors, blocks)
+        for block in _in_order(ray, actors, blocks):
+            yield _from_arrays(block)
     finally:  # finished or interrupted: the actors (and a cluster started here) go
         for actor in actors:
             ray.kill(actor)
