@@ -35,7 +35,8 @@ identical (sha256 over every map array).
 With --workers N > 1 the same map is then built with N local worker processes, and with
 --engine ray also on a local Ray cluster with N CPUs (N actors); each is checked identical.
 Worker and cluster start-up (fresh interpreters importing torch, about 3 s; Ray's own services)
-is included, so small images gain less.
+is included, so small images gain less. With both, it prints how far Ray is behind the workers and
+how long a bare local cluster (no actors) takes to start and to stop: Ray's fixed cost.
 
 Memory, MiB: this process's peak (VmHWM); the largest finished child process's peak
 (RUSAGE_CHILDREN: local workers once the pool is shut down, and Ray's services started by this
@@ -451,20 +452,41 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
     if args.engine == "ray":
         runs.append((f"Ray, local cluster of {args.workers} CPUs",
                      [f"aerial_map.workers={args.workers}", "aerial_map.engine=ray"]))
+    seconds: dict[str, float] = {}  # per run, in order: the local workers, then Ray
     for name, run_overrides in runs:
         cfg_w = load_config(args.config, [*overrides, *run_overrides])
         mapper_w = AerialMapper.from_config(cfg_w.aerial_map, cfg_w.perception, cfg_w.primitives)
         t0 = time.perf_counter()
         with TreePeak() as tree:
             amap_w = build_aerial_map(ortho, mapper_w)
-        total_w = time.perf_counter() - t0
+        total_w = seconds[name] = time.perf_counter() - t0
         minutes_w = total_w / n_patches * n_km2 / 60.0
         print(f"\n{name}: {total_w:.1f} s = {total_w / n_patches:.2f} s/patch, {total / total_w:.2f}x the "
               f"single process; identical map: {_identical(amap, amap_w)}")
         print(f"1 km^2 -> {minutes_w:.1f} min = {1 / minutes_w:.4f} km^2/min; {area_km2 / (total_w / 60):.4f} "
               f"km^2/min measured. Peak RSS, MiB: this process {peak_rss_mib():.0f}, largest finished child "
               f"{_children_peak_mib():.0f}, process tree sampled {tree.peak_mib:.0f}")
+    if len(seconds) == 2:
+        local, ray_total = seconds.values()
+        start, stop = _bare_cluster_seconds(args.workers)
+        print(f"\nRay behind the local workers: {ray_total / local - 1:+.1%}. A bare local cluster of "
+              f"{args.workers} CPUs (no actors), started and stopped as the engine does: {start:.1f} + {stop:.1f} s, "
+              f"{(start + stop) / local:.0%} of the workers' time")
     return 0
+
+
+def _bare_cluster_seconds(cpus: int) -> tuple[float, float]:
+    """Seconds to start and to stop a local Ray cluster as `aerial_engines` does: the fixed part of
+    a Ray build that local workers do not pay."""
+    import logging
+
+    import ray
+
+    t0 = time.perf_counter()
+    ray.init(address="local", num_cpus=cpus, include_dashboard=False, logging_level=logging.WARNING)
+    t1 = time.perf_counter()
+    ray.shutdown()
+    return t1 - t0, time.perf_counter() - t1
 
 
 if __name__ == "__main__":
