@@ -476,14 +476,14 @@ def _bench(args: argparse.Namespace, cfg, overrides: list[str], ortho_path: Path
 
 
 def _bare_cluster_seconds(cpus: int) -> tuple[float, float]:
-    """Seconds to start and to stop a local Ray cluster as `aerial_engines` does: the fixed part of
-    a Ray build that local workers do not pay."""
-    import logging
-
+    """Seconds to start and to stop the engine's local Ray cluster: the fixed part of a Ray build
+    that local workers do not pay."""
     import ray
 
+    from meridian_torch.mapping.aerial_engines import start_local_ray_cluster
+
     t0 = time.perf_counter()
-    ray.init(address="local", num_cpus=cpus, include_dashboard=False, logging_level=logging.WARNING)
+    start_local_ray_cluster(cpus)
     t1 = time.perf_counter()
     ray.shutdown()
     return t1 - t0, time.perf_counter() - t1

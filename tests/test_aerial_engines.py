@@ -186,7 +186,9 @@ def test_worker_arrays_become_tensors_the_caller_can_write() -> None:
         for a in [*patch.values(), desc]:
             a.setflags(write=writable)
         ((primitives, global_desc),) = _from_arrays([(patch, desc)])
-        for name, tensor, source in [*((n, getattr(primitives, n), patch[n]) for n in patch), ("desc", global_desc, desc)]:
+        tensors = {**{name: getattr(primitives, name) for name in patch}, "desc": global_desc}
+        for name, source in {**patch, "desc": desc}.items():
+            tensor = tensors[name]
             assert torch.equal(tensor, torch.from_numpy(source.copy())), name
             assert np.shares_memory(tensor.numpy(), source) == writable, (name, writable)
 

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from meridian_torch.io.ortho_source import OrthophotoSource
     from meridian_torch.mapping.aerial_map import AerialMapper
 
-__all__ = ["BlockResult", "describe_block", "described_blocks"]
+__all__ = ["BlockResult", "describe_block", "described_blocks", "start_local_ray_cluster"]
 
 BlockResult = list[tuple[PrimitiveSet, torch.Tensor]]  # per patch: primitives, global descriptor
 
@@ -166,6 +166,17 @@ def _in_order(ray, actors: list, blocks: list[np.ndarray], depth: int = 2) -> It
         yield result
 
 
+def start_local_ray_cluster(cpus: int) -> None:
+    """Start the local Ray cluster of `cpus` CPUs that the ray engine uses without an address
+    (`bench_aerial.py` times it); stopped by `ray.shutdown()`."""
+    import logging
+
+    import ray
+
+    # address "local": a new cluster, even where `ray start` left one (or its address file) behind
+    ray.init(address="local", num_cpus=cpus, include_dashboard=False, logging_level=logging.WARNING)
+
+
 def _ray_blocks(
     ortho: Orthophoto | OrthophotoSource, grid: PatchGrid, mapper: AerialMapper, blocks: list[np.ndarray]
 ) -> Iterator[BlockResult]:
@@ -182,8 +193,7 @@ def _ray_blocks(
     aerial = mapper.aerial
     started = not ray.is_initialized()
     if started and aerial.ray_address is None:
-        # address "local": a new cluster, even where `ray start` left one (or its address file) behind
-        ray.init(address="local", num_cpus=aerial.workers, include_dashboard=False, logging_level=logging.WARNING)
+        start_local_ray_cluster(aerial.workers)
     elif started:
         try:
             ray.init(address=aerial.ray_address, logging_level=logging.WARNING)
