@@ -386,3 +386,29 @@ def test_a_mapper_without_frame_descriptors_makes_the_same_submaps(tiny: Path, s
     _assert_same_submaps(bare, submaps)
     assert mapper.global_describer is None  # nothing to describe frames with, nothing loaded for it
     assert all(len(a.frame_descriptors) == 0 < len(b.frame_descriptors) for a, b in zip(bare, submaps))
+
+
+def _spaced_submaps(reader: SequenceReader, spacing) -> list[tuple[float, float]]:
+    """(path length of the frame that made it, of its centre) of every submap of a mapper spaced by
+    `spacing` from the first frame on (as after a fix), fed one frame at a time."""
+    from meridian_torch.config.mapping import SubmapSpacingConfig
+
+    mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime), frame_descriptors=False)
+    mapper.trigger.use_spacing(SubmapSpacingConfig(**spacing))
+    made = []
+    for i in range(len(reader)):
+        made += [(mapper.frames[-1].path_length_m, s.path_length_m) for s in mapper.add_frames([reader[i]])]
+    return made
+
+
+def test_a_submap_centre_trails_the_robot_by_at_most_the_bound(tiny: Path) -> None:
+    """With few new segments their median time lags and a postponed submap waits for it;
+    `max_centre_lag_m` moves such a centre up to that much travel behind the newest frame."""
+    reader = SequenceReader(tiny)
+    spacing = {"trigger_path_m": 2.0, "min_interval_s": 0.0, "min_path_m": 2.0}
+    free = _spaced_submaps(reader, spacing)
+    lags = [made - centre for made, centre in free]
+    bound = 0.5 * max(lags)
+    assert bound > 0.0
+    bounded = _spaced_submaps(reader, {**spacing, "max_centre_lag_m": bound})
+    assert bounded and all(made - centre <= bound + 1e-9 for made, centre in bounded)

@@ -201,6 +201,12 @@ class SubmapSpacingConfig(StrictModel):
     trigger_path_m: float = Field(gt=0, description="trigger a submap after this much travel if any segment is new")
     min_interval_s: float = Field(ge=0, description="a submap this soon after the previous one is skipped")
     min_path_m: float = Field(ge=0, description="a submap after less travel than this is skipped")
+    max_centre_lag_m: float | None = Field(
+        default=None,
+        gt=0,
+        description="a submap's centre trails the robot by at most this much travel (None: no bound); where "
+        "few segments are new, their median time lags and a postponed submap waited for it",
+    )
 
 
 class GroundMapConfig(StrictModel):
@@ -224,7 +230,9 @@ class GroundMapConfig(StrictModel):
         default=20.0, ge=0, description="a submap after less odometry travel than this is skipped (newer reference)"
     )
     submap_spacing_after_fix: SubmapSpacingConfig | None = Field(
-        default_factory=lambda: SubmapSpacingConfig(trigger_path_m=20.0, min_interval_s=0.0, min_path_m=20.0),
+        default_factory=lambda: SubmapSpacingConfig(
+            trigger_path_m=20.0, min_interval_s=0.0, min_path_m=20.0, max_centre_lag_m=20.0
+        ),
         description="submap spacing from the localizer's global fix on (default: every 20 m, the authors' newer "
         "code; null: unchanged)",
     )

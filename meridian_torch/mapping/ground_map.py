@@ -16,7 +16,8 @@ since the last one;
 update the tracker; check the submap trigger. A submap's centre is the frame nearest in time to
 the median of its NEW segments' (first_seen + last_seen) / 2 (non-decreasing; the reference
 takes the mean over all selected segments, which with few segments per frame reaches back to the
-start of the run); `GroundSubmap.time`,
+start of the run; with `submap_spacing_after_fix.max_centre_lag_m`, at most that much travel behind
+the newest frame); `GroundSubmap.time`,
 `T_odom_base` and `path_length_m` are that frame's. Its `frame_descriptors` are the global
 descriptors of the frames in the window where all its segments were in view (the reference's
 [min last_seen, max first_seen], else [min first_seen, max last_seen]) whose camera is within the
@@ -300,6 +301,12 @@ class GroundMapper:
         mid = float(np.median([0.5 * (s.first_seen + s.last_seen) for s in new]))
         mid = max(mid, self._last_submap_time)
         times = np.array([f.time for f in self.frames])
+        lag_m = None if self.trigger.spacing is None else self.trigger.spacing.max_centre_lag_m
+        if lag_m is not None:
+            # A postponed submap keeps its new segments; where few come, their median stays behind
+            # and the submap waited for it (KITTI 02: 110 m without a submap).
+            paths = np.array([f.path_length_m for f in self.frames])
+            mid = max(mid, float(times[np.searchsorted(paths, paths[-1] - lag_m)]))
         centre = int(np.argmin(np.abs(times - mid)))
         record = self.frames[centre]
         if not self.trigger.gate(record.time, record.path_length_m):
