@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from meridian_torch.config import CONFIG_DIR, load_config
+from meridian_torch.config.mapping import SubmapSpacingConfig
 from meridian_torch.evaluation.primitive_metrics import line_metrics, world_ground_truth
 from meridian_torch.geometry.se3 import se3_inverse
 from meridian_torch.io.sequence import SequenceReader
@@ -391,8 +392,6 @@ def test_a_mapper_without_frame_descriptors_makes_the_same_submaps(tiny: Path, s
 def _spaced_submaps(reader: SequenceReader, spacing) -> list[tuple[float, float]]:
     """(path length of the frame that made it, of its centre) of every submap of a mapper spaced by
     `spacing` from the first frame on (as after a fix), fed one frame at a time."""
-    from meridian_torch.config.mapping import SubmapSpacingConfig
-
     mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime), frame_descriptors=False)
     mapper.trigger.use_spacing(SubmapSpacingConfig(**spacing))
     made = []
