@@ -28,6 +28,7 @@ with one nearest in time to the centre.
 from __future__ import annotations
 
 import contextvars
+from bisect import bisect_left
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -305,8 +306,8 @@ class GroundMapper:
         if lag_m is not None:
             # A postponed submap keeps its new segments; where few come, their median stays behind
             # and the submap waited for it (KITTI 02: 110 m without a submap).
-            paths = np.array([f.path_length_m for f in self.frames])
-            mid = max(mid, float(times[np.searchsorted(paths, paths[-1] - lag_m)]))
+            behind = bisect_left(self.frames, self.frames[-1].path_length_m - lag_m, key=lambda f: f.path_length_m)
+            mid = max(mid, self.frames[behind].time)
         centre = int(np.argmin(np.abs(times - mid)))
         record = self.frames[centre]
         if not self.trigger.gate(record.time, record.path_length_m):
