@@ -261,21 +261,12 @@ def test_candidates_from_hypotheses() -> None:
         valid=valid,
         pairs=torch.zeros(2, 6, 2, dtype=torch.int64),
     )
-    c = candidates_from_hypotheses(
-        hyps, submap, torch.tensor([11, 4]), min_associations=3, min_probability=0.0, quality_scope="patch"
-    )
+    c = candidates_from_hypotheses(hyps, submap, torch.tensor([11, 4]), min_associations=3, quality_scope="patch")
     assert c.patch_index.tolist() == [11, 4]
     assert c.quality.tolist() == pytest.approx([0.5, 1.0])
     # Relative to the submap's best over both patches: patch 4's best is a quarter of patch 11's.
-    across = candidates_from_hypotheses(
-        hyps, submap, torch.tensor([11, 4]), min_associations=3, min_probability=0.0, quality_scope="submap"
-    )
+    across = candidates_from_hypotheses(hyps, submap, torch.tensor([11, 4]), min_associations=3, quality_scope="submap")
     assert across.quality.tolist() == pytest.approx([0.5, 0.25])
-    # A probability floor drops patch 4's hypothesis (0.1) and keeps the other's quality ratio.
-    floored = candidates_from_hypotheses(
-        hyps, submap, torch.tensor([11, 4]), min_associations=3, min_probability=0.15, quality_scope="submap"
-    )
-    assert floored.patch_index.tolist() == [11] and floored.quality.tolist() == pytest.approx([0.5])
     assert torch.equal(across.T_world_base, c.T_world_base)
     assert c.submap_index.tolist() == [7, 7] and c.path_length_m.tolist() == [40.0, 40.0]
     expected = se2_matrix(theta[0, 0].double(), t[0, 0].double()) @ _se2(3.0, 4.0, 0.3)

@@ -75,12 +75,11 @@ class LoopClosureCandidates:
 
 def candidates_from_hypotheses(
     hypotheses: Hypotheses, submap: GroundSubmap, patch_index: Tensor, *, min_associations: int,
-    min_probability: float, quality_scope: Literal["submap", "patch"],
+    quality_scope: Literal["submap", "patch"],
 ) -> LoopClosureCandidates:
     """The valid hypotheses (P, L) of one submap against the patches `patch_index` (P,) as candidates.
 
-    Hypotheses with fewer than `min_associations` associations, zero probability or a probability
-    below `min_probability` are dropped.
+    Hypotheses with fewer than `min_associations` associations or zero probability are dropped.
     The quality is computed over the valid hypotheses before that filter: relative to the best of
     all P patches (`quality_scope` "submap": verified probabilities compare across patches, so a
     decoy patch's best hypothesis no longer counts as much as the true patch's), or of each patch
@@ -94,7 +93,7 @@ def candidates_from_hypotheses(
         best = best.amax(dim=0, keepdim=True) if len(best) else best
     quality = torch.where(best > 0, prob / best.clamp_min(1e-300), torch.zeros_like(prob))
     n_assoc = hypotheses.association_mask.cpu().sum(-1)
-    keep = valid & (n_assoc >= min_associations) & (prob > 0) & (prob >= min_probability)
+    keep = valid & (n_assoc >= min_associations) & (prob > 0)
     T_odom_base = se2_from_se3(submap.T_odom_base)
     T_world_base = hypotheses.T_world_odom.detach().cpu().to(torch.float64) @ T_odom_base
     n = int(keep.sum())

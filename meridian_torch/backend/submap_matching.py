@@ -57,7 +57,7 @@ class SubmapMatching:
         self.timer.add("matching", start)
         return candidates_from_hypotheses(
             hyps, submap, patches, min_associations=self.cfg.backend.min_associations,
-            min_probability=self.cfg.backend.min_probability, quality_scope=self.cfg.backend.quality_scope,
+            quality_scope=self.cfg.backend.quality_scope,
         )
 
     def place_recognition_patches(self, submap: GroundSubmap) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -29,15 +29,6 @@ class BackendConfig(StrictModel):
         default=True, description="False = constant noise (the paper's 'without path-length scaling' ablation)"
     )
     min_associations: int = Field(default=3, ge=1, description="hypotheses with fewer associations are no candidates")
-    min_probability: float = Field(
-        default=0.03,
-        ge=0,
-        le=1,
-        description="hypotheses less probable than this are no candidates (0: every one). With verification (the "
-        "default) p is the share of the submap a pose lays on the patch beyond chance: of the loop closures the "
-        "localizer took on the KITTI-map worlds, 8 of the 9 below 0.03 were more than 2 m off (median 5.1 m; "
-        "0.54 m at 0.3 and above)",
-    )
     fuse_quality: bool = Field(
         default=True, description="affinity = cbrt(s * q_i * q_j) with q = probability / best of `quality_scope`"
     )
