@@ -389,7 +389,7 @@ def test_a_mapper_without_frame_descriptors_makes_the_same_submaps(tiny: Path, s
     assert all(len(a.frame_descriptors) == 0 < len(b.frame_descriptors) for a, b in zip(bare, submaps))
 
 
-def _spaced_submaps(reader: SequenceReader, spacing) -> list[tuple[float, float]]:
+def _spaced_submaps(reader: SequenceReader, spacing: dict[str, float]) -> list[tuple[float, float]]:
     """(path length of the frame that made it, of its centre) of every submap of a mapper spaced by
     `spacing` from the first frame on (as after a fix), fed one frame at a time."""
     mapper = GroundMapper.from_config(CFG, reader.camera, resolve_runtime(CFG.runtime), frame_descriptors=False)
