@@ -450,8 +450,8 @@ def test_a_right_fix_with_sparse_agreement_is_kept_above_the_revocation_fraction
 
 @pytest.mark.parametrize("extra_submaps", [0, 3])
 def test_a_fix_is_judged_only_after_the_distance(extra_submaps: int) -> None:
-    # the planted wrong fix of the revocation test, and no submap after it finds a match (so the
-    # truth cannot outvote it): revoked at the first submap past the distance, not before
+    # the wrong fix of the test above, and no submap after it finds a match (so the truth cannot
+    # outvote it): revoked at the first submap past the distance, however many came before it
     def wrong_fix_world() -> World:
         world = World(seed=3, n_frames=360)
         world.corrupt_submaps = set(range(6))

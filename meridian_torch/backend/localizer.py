@@ -16,11 +16,10 @@ States, per new ground submap:
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
 - The fix is checked by the submaps that follow it: once `fix_min_inliers` submaps have come
   since the fix and the robot has driven `fix_judge_after_m` since it, fewer than
-  `fix_revoke_below_fraction` of them with an accepted loop closure **revokes** it (a wrong fix
-  finds few consistent matches near its wrong prediction; a right one, most). The online
-  estimate is withheld from then on (NaN) and the localizer goes back to "pre": the pool is
-  rebuilt from the submaps' place-recognition candidates and the next fix must pass the gate
-  over every submap again.
+  `fix_revoke_below_fraction` of them with an accepted loop closure **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
+  one, most). The online estimate is withheld from then on (NaN) and the localizer goes back to
+  "pre": the pool is rebuilt from the submaps' place-recognition candidates and the next fix
+  must pass the gate over every submap again.
 
 The online pose graph lives in iSAM2 from the fix on (`IncrementalPoseGraph`: each update adds
 the new frames and the changed loop closures). The online estimate at a frame = the anchor (last

@@ -112,7 +112,7 @@ class BackendConfig(StrictModel):
         ge=0,
         description="... and only once the robot has driven this far (odometry path, m) since the fix submap "
         "(null: fix_min_inliers submaps are enough). The fraction above was measured with submaps every 40 m, "
-        "6 of them over 240 m; at the shipped 20 m spacing after the fix, 6 submaps are 120 m",
+        "6 of them over 240 m; after the fix they now come every 20 m",
     )
     commit_accepted_inliers: bool = Field(
         default=True, description="after the fix, drop the alternatives of submaps that have an inlier"
