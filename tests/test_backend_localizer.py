@@ -399,9 +399,7 @@ def test_improbable_inliers_give_no_fix(min_mean: float | None) -> None:
 def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld() -> None:
     world = World(seed=3, n_frames=360)
     world.corrupt_submaps = set(range(6))  # 0-5 agree with each other on a pose 25 m off: a wrong fix
-    # judged by submap count alone (this world's submaps are closer than the shipped distance)
-    loc = Localizer(make_map(), _cfg(fix_judge_after_m=None), world.odometry, world.times, matcher=world.matcher,
-                    online_covariance=True)
+    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher, online_covariance=True)
     events = []
     for submap in world.submaps():
         events.append(loc.add_submap(submap))
@@ -433,8 +431,8 @@ def test_a_right_fix_with_sparse_agreement_is_kept_above_the_revocation_fraction
     world = World(seed=3, n_frames=360)
     world.bad_submaps = {fix + k for k in (2, 4, 7, 8, 9)}
     assert fix + 10 < len(world.submap_frames)
-    loc = Localizer(make_map(), _cfg(fix_revoke_below_fraction=revoke_below, fix_judge_after_m=None), world.odometry,
-                    world.times, matcher=world.matcher)
+    loc = Localizer(make_map(), _cfg(fix_revoke_below_fraction=revoke_below), world.odometry, world.times,
+                    matcher=world.matcher)
     events = [loc.add_submap(s) for s in world.submaps()]
     assert [e.submap_index for e in events if e.fix_committed][0] == fix
     revoked = [e.submap_index for e in events if e.fix_revoked]
@@ -446,34 +444,6 @@ def test_a_right_fix_with_sparse_agreement_is_kept_above_the_revocation_fraction
         assert np.isfinite(loc.online_estimate()[late]).all()
     else:  # 4 of 8 still holds at 50 %, 4 of 9 does not
         assert revoked == [fix + 9]
-
-
-@pytest.mark.parametrize("extra_submaps", [0, 3])
-def test_a_fix_is_judged_only_after_the_distance(extra_submaps: int) -> None:
-    # the wrong fix of the test above, and no submap after it finds a match (so the truth cannot
-    # outvote it): revoked at the first submap past the distance, however many came before it
-    def wrong_fix_world() -> World:
-        world = World(seed=3, n_frames=360)
-        world.corrupt_submaps = set(range(6))
-        world.bad_submaps = set(range(6, len(world.submap_frames)))
-        return world
-
-    world = wrong_fix_world()
-    submaps = world.submaps()
-    counted = Localizer(make_map(), _cfg(fix_judge_after_m=None), world.odometry, world.times, matcher=world.matcher)
-    events = [counted.add_submap(s) for s in submaps]
-    fix = next(e.submap_index for e in events if e.fix_committed)
-    b = counted.cfg.backend
-    assert [e.submap_index for e in events if e.fix_revoked][0] == fix + b.fix_min_inliers
-    due = fix + b.fix_min_inliers + extra_submaps
-    assert due < len(submaps)
-    # just past the submap before `due`: only `due` has driven far enough
-    after_m = (submaps[due - 1].path_length_m + submaps[due].path_length_m) / 2 - submaps[fix].path_length_m
-    world = wrong_fix_world()
-    loc = Localizer(make_map(), _cfg(fix_judge_after_m=after_m), world.odometry, world.times, matcher=world.matcher)
-    events = [loc.add_submap(s) for s in world.submaps()]
-    assert [e.submap_index for e in events if e.fix_committed][0] == fix
-    assert [e.submap_index for e in events if e.fix_revoked][0] == due
 
 
 def test_offline_mode_localizes() -> None:

@@ -15,8 +15,8 @@ States, per new ground submap:
   pool; CLIPPER + pose graph; accepted inliers are committed (the other candidates of their
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
 - The fix is checked by the submaps that follow it: once `fix_min_inliers` submaps have come
-  since the fix and the robot has driven `fix_judge_after_m` since it, fewer than
-  `fix_revoke_below_fraction` of them with an accepted loop closure **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
+  since the fix, fewer than `fix_revoke_below_fraction` of them with an accepted loop closure
+  **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
   one, most). The online estimate is withheld from then on (NaN) and the localizer goes back to
   "pre": the pool is rebuilt from the submaps' place-recognition candidates and the next fix
   must pass the gate over every submap again.
@@ -381,14 +381,10 @@ class Localizer:
 
     def _fix_refuted(self, sel: InlierSelection) -> bool:
         """The submaps since the fix, once `fix_min_inliers` of them have come: fewer than
-        `fix_revoke_below_fraction` of them have an accepted loop closure. Judged only once the
-        robot has driven `fix_judge_after_m` since the fix submap."""
+        `fix_revoke_below_fraction` of them have an accepted loop closure."""
         b = self.cfg.backend
         since = len(self.submaps) - 1 - self._fix_position
         if since < b.fix_min_inliers:
-            return False
-        driven_m = self.submaps[-1].path_length_m - self.submaps[self._fix_position].path_length_m
-        if b.fix_judge_after_m is not None and driven_m < b.fix_judge_after_m:
             return False
         accepted = self._accepted(sel).submap_index
         agreeing = int(torch.unique(accepted[accepted > self.fix_submap_index]).numel())

@@ -107,13 +107,6 @@ class BackendConfig(StrictModel):
         "fraction of them have an accepted loop closure (measured with planted wrong fixes on the KITTI 00 / 09 "
         "worlds: right fixes kept >= 44 %, wrong ones fell below 40 % within 6-8 submaps; 0.5 revoked a right one)",
     )
-    fix_judge_after_m: float | None = Field(
-        default=240.0,
-        ge=0,
-        description="... and only once the robot has driven this far (odometry path, m) since the fix submap "
-        "(null: fix_min_inliers submaps are enough). The fraction above was measured with submaps every 40 m, "
-        "6 of them over 240 m; after the fix they now come every 20 m",
-    )
     commit_accepted_inliers: bool = Field(
         default=True, description="after the fix, drop the alternatives of submaps that have an inlier"
     )
