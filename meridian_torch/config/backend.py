@@ -107,12 +107,6 @@ class BackendConfig(StrictModel):
         "fraction of them have an accepted loop closure (measured with planted wrong fixes on the KITTI 00 / 09 "
         "worlds: right fixes kept >= 44 %, wrong ones fell below 40 % within 6-8 submaps; 0.5 revoked a right one)",
     )
-    fix_revoke_after_refutations: int = Field(
-        default=1,
-        ge=1,
-        description="the fix is revoked when this many submaps in a row find it refuted (fix_revoke_below_fraction); "
-        "at the earlier ones the online estimate is withheld and nothing is committed",
-    )
     commit_accepted_inliers: bool = Field(
         default=True, description="after the fix, drop the alternatives of submaps that have an inlier"
     )
