@@ -396,27 +396,40 @@ def test_improbable_inliers_give_no_fix(min_mean: float | None) -> None:
         assert not result.localized and np.all(np.isnan(result.T_world_base))
 
 
-def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld() -> None:
+@pytest.mark.parametrize("after_refutations", [1, 2])
+def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld(after_refutations: int) -> None:
     world = World(seed=3, n_frames=360)
     world.corrupt_submaps = set(range(6))  # 0-5 agree with each other on a pose 25 m off: a wrong fix
-    loc = Localizer(make_map(), _cfg(), world.odometry, world.times, matcher=world.matcher, online_covariance=True)
+    loc = Localizer(make_map(), _cfg(fix_revoke_after_refutations=after_refutations), world.odometry, world.times,
+                    matcher=world.matcher, online_covariance=True)
     events = []
     for submap in world.submaps():
         events.append(loc.add_submap(submap))
         if events[-1].fix_revoked:
             assert loc.latest_estimate() == (None, None) and loc.state == "pre"
+        if events[-1].fix_doubted:
+            assert loc.latest_estimate() == (None, None) and loc.state == "post"
     fixes = [e.submap_index for e in events if e.fix_committed]
     revoked = [e.submap_index for e in events if e.fix_revoked]
+    doubted = [e.submap_index for e in events if e.fix_doubted]
     b = loc.cfg.backend
     # the submaps after the wrong fix match the truth, not its prediction: none of them agrees
-    assert revoked == [fixes[0] + b.fix_min_inliers] and len(fixes) == 2 and fixes[1] > revoked[0]
+    first_refuted = fixes[0] + b.fix_min_inliers
+    if after_refutations == 1:
+        assert revoked == [first_refuted] and not doubted and len(fixes) == 2 and fixes[1] > revoked[0]
+        # the new fix is again judged by 0-5's wrong agreement, the submap after it outvotes them
+        recovered = fixes[1] + 1
+    else:
+        # nothing was committed at the doubting submap, so at the next one the alternatives of the
+        # submaps since the fix outvote 0-5: the accepted set turns to the truth without a new search
+        assert doubted == [first_refuted] and not revoked and len(fixes) == 1
+        recovered = first_refuted + 1
     result = loc.finalize()
     t = world.times
-    withheld = (t >= events[revoked[0]].time) & (t < events[fixes[1]].time)
+    withheld = (t >= events[first_refuted].time) & (t < events[first_refuted + 1].time)
     assert withheld.any() and np.isnan(result.T_world_base_incremental[withheld]).all()
     assert np.isnan(result.covariance_incremental[withheld]).all()
-    # the new fix is again judged by 0-5's wrong agreement, the submap after it outvotes them: recovered
-    late = t >= events[fixes[1] + 1].time
+    late = t >= events[recovered].time
     assert _xy_error(result.T_world_base_incremental[late], Trajectory(t[late], world.gt.poses[late])).max() < 3.0
     assert result.localized and _xy_error(result.T_world_base, world.gt).max() < 3.0
 
@@ -431,8 +444,9 @@ def test_a_right_fix_with_sparse_agreement_is_kept_above_the_revocation_fraction
     world = World(seed=3, n_frames=360)
     world.bad_submaps = {fix + k for k in (2, 4, 7, 8, 9)}
     assert fix + 10 < len(world.submap_frames)
-    loc = Localizer(make_map(), _cfg(fix_revoke_below_fraction=revoke_below), world.odometry, world.times,
-                    matcher=world.matcher)
+    # one refuting submap revokes: this tests the fraction (the second look has its own test below)
+    loc = Localizer(make_map(), _cfg(fix_revoke_below_fraction=revoke_below, fix_revoke_after_refutations=1),
+                    world.odometry, world.times, matcher=world.matcher)
     events = [loc.add_submap(s) for s in world.submaps()]
     assert [e.submap_index for e in events if e.fix_committed][0] == fix
     revoked = [e.submap_index for e in events if e.fix_revoked]
@@ -444,6 +458,36 @@ def test_a_right_fix_with_sparse_agreement_is_kept_above_the_revocation_fraction
         assert np.isfinite(loc.online_estimate()[late]).all()
     else:  # 4 of 8 still holds at 50 %, 4 of 9 does not
         assert revoked == [fix + 9]
+
+
+def test_one_refuting_submap_only_withholds_the_estimate_when_two_in_a_row_revoke() -> None:
+    # the sparse world above under the 50 % rule: fix + 9 refutes the right fix (4 of 9 agree), fix + 10
+    # does not (5 of 10)
+    clean = World(seed=3, n_frames=360)
+    first = Localizer(make_map(), _cfg(), clean.odometry, clean.times, matcher=clean.matcher)
+    fix = next(e.submap_index for e in map(first.add_submap, clean.submaps()) if e.fix_committed)
+    world = World(seed=3, n_frames=360)
+    world.bad_submaps = {fix + k for k in (2, 4, 7, 8, 9)}
+    assert fix + 10 < len(world.submap_frames)
+    loc = Localizer(make_map(), _cfg(fix_revoke_below_fraction=0.5, fix_revoke_after_refutations=2),
+                    world.odometry, world.times, matcher=world.matcher, online_covariance=True)
+    events = []
+    for submap in world.submaps():
+        events.append(loc.add_submap(submap))
+        if events[-1].fix_doubted:
+            assert loc.latest_estimate() == (None, None) and loc.state == "post"
+        elif events[-1].submap_index > fix:
+            assert loc.latest_estimate()[0] is not None
+    assert [e.submap_index for e in events if e.fix_committed] == [fix]
+    assert [e.submap_index for e in events if e.fix_doubted] == [fix + 9]
+    assert not any(e.fix_revoked for e in events)
+    t = world.times
+    online, covariances = loc.online_estimate(), loc.online_covariances()
+    withheld = (t >= events[fix + 9].time) & (t < events[fix + 10].time)
+    assert withheld.any() and np.isnan(online[withheld]).all() and np.isnan(covariances[withheld]).all()
+    resumed = t >= events[fix + 10].time
+    assert np.isfinite(online[resumed]).all() and np.isfinite(covariances[resumed]).all()
+    assert _xy_error(online[resumed], Trajectory(t[resumed], world.gt.poses[resumed])).max() < 3.0
 
 
 def test_offline_mode_localizes() -> None:
@@ -699,14 +743,14 @@ def test_coarse_candidates_are_matched_with_the_chains_yaw_when_asked(yaw_prior:
             assert world.priors[k] is None
 
 
-def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int):
+def _gated_run(gate: float | None, shift_m: dict[int, float], last_submap: int, release_submaps: int = 2):
     """The localizer after submaps 0..last_submap of a world whose submaps `shift_m` are shifted."""
     world = World(seed=1, n_frames=400)
     world.bad_submaps = {0, 1, 2, 3}
     world.shift_m = shift_m
     # loop-closure priors as tight as the scripted matcher's 0.3 m noise
-    loc = Localizer(make_map(), _cfg(online_gate_chi2=gate, prior_trans_sigma_m=0.5), world.odometry, world.times,
-                    matcher=world.matcher, online_covariance=True)
+    cfg = _cfg(online_gate_chi2=gate, prior_trans_sigma_m=0.5, online_gate_release_submaps=release_submaps)
+    loc = Localizer(make_map(), cfg, world.odometry, world.times, matcher=world.matcher, online_covariance=True)
     events = [loc.add_submap(s) for s in world.submaps()[: last_submap + 1]]
     return world, loc, events
 
@@ -724,8 +768,13 @@ def test_online_gate_holds_a_closure_that_disagrees_with_the_prediction() -> Non
     assert set(range(4, 15)) <= set(loc._anchored)
 
 
-def test_online_gate_takes_closures_of_two_submaps_that_fail_it_together() -> None:
-    # Two successive submaps agree with each other and not with the prediction: the prediction may
-    # be what is wrong, so the gate lets both in.
-    world, loc, events = _gated_run(chi2.ppf(0.99, 3), {14: 2.5, 15: 2.5}, 15)
-    assert {14, 15} <= set(loc._anchored)
+@pytest.mark.parametrize("release_submaps", [2, 3])
+def test_online_gate_takes_closures_of_enough_submaps_that_fail_it_together(release_submaps: int) -> None:
+    # Successive submaps agree with each other and not with the prediction: the prediction may be
+    # what is wrong, so the gate lets them in once there are `online_gate_release_submaps` of them.
+    gate = chi2.ppf(0.99, 3)
+    world, loc, events = _gated_run(gate, {14: 2.5, 15: 2.5}, 15, release_submaps)
+    assert ({14, 15} <= set(loc._anchored)) == (release_submaps <= 2)
+    assert not ({14, 15} & set(loc._anchored)) == (release_submaps > 2)
+    world, loc, events = _gated_run(gate, {14: 2.5, 15: 2.5, 16: 2.5}, 16, release_submaps)
+    assert {14, 15, 16} <= set(loc._anchored)

@@ -16,10 +16,12 @@ States, per new ground submap:
   submaps are dropped, except for the `commit_delay_submaps` most recent submaps).
 - The fix is checked by the submaps that follow it: once `fix_min_inliers` submaps have come
   since the fix, fewer than `fix_revoke_below_fraction` of them with an accepted loop closure
-  **revokes** it (a wrong fix finds few consistent matches near its wrong prediction; a right
-  one, most). The online estimate is withheld from then on (NaN) and the localizer goes back to
-  "pre": the pool is rebuilt from the submaps' place-recognition candidates and the next fix
-  must pass the gate over every submap again.
+  refutes it (a wrong fix finds few consistent matches near its wrong prediction; a right one,
+  most). The online estimate is withheld from a refuting submap on (NaN), and nothing is
+  anchored or committed; the next submap that does not refute it brings the estimate back.
+  `fix_revoke_after_refutations` refuting submaps in a row **revoke** it: back to "pre", the pool
+  is rebuilt from the submaps' place-recognition candidates and the next fix must pass the gate
+  over every submap again.
 
 The online pose graph lives in iSAM2 from the fix on (`IncrementalPoseGraph`: each update adds
 the new frames and the changed loop closures). The online estimate at a frame = the anchor (last
@@ -167,6 +169,7 @@ class Localizer:
         self.fix_submap_index: int | None = None
         self.fix_time: float | None = None
         self._fix_position = 0  # submaps added before the fix submap
+        self._refutations = 0  # checks in a row that refuted the fix
         self.events: list[LocalizerEvent] = []
         # (pre-fix inlier indices, submaps re-matched, their candidates) of the last fix attempt
         self._attempt_cache: tuple[tuple[int, ...], int, LoopClosureCandidates] | None = None
@@ -303,10 +306,11 @@ class Localizer:
 
     def _gated(self, accepted: LoopClosureCandidates) -> LoopClosureCandidates:
         """`accepted` without the loop closures, new to the online graph, whose innovation against the
-        latest update's prediction fails `backend.online_gate_chi2`; when closures of two or more
-        submaps fail it at once they are all kept (then the prediction may be what is wrong)."""
+        latest update's prediction fails `backend.online_gate_chi2`; when closures of
+        `online_gate_release_submaps` or more submaps fail it at once they are all kept (then the
+        prediction may be what is wrong)."""
         b = self.cfg.backend
-        update = self._updates[-1] if self._updates else None
+        update = self._latest_anchor()
         if b.online_gate_chi2 is None or update is None or not len(accepted):
             return accepted
         nodes, priors = self._prior_poses(accepted)
@@ -323,7 +327,7 @@ class Localizer:
             e = np.array([*(prior[:2, 2] - predicted[:2, 2]), wrap_angle(yaw_of(prior) - yaw_of(predicted))])
             S = prior_cov if cov is None else prior_cov + cov
             fails[k] = float(e @ np.linalg.solve(S, e)) > b.online_gate_chi2
-        if len({submaps[k] for k in np.flatnonzero(fails)}) >= 2:
+        if len({submaps[k] for k in np.flatnonzero(fails)}) >= b.online_gate_release_submaps:
             return accepted
         return accepted.select(torch.from_numpy(~fails))
 
@@ -390,6 +394,14 @@ class Localizer:
         agreeing = int(torch.unique(accepted[accepted > self.fix_submap_index]).numel())
         return agreeing < b.fix_revoke_below_fraction * since
 
+    def _latest_anchor(self) -> OnlineUpdate | None:
+        """The latest update that gave an estimate (a withheld one has a NaN anchor)."""
+        return next((u for u in reversed(self._updates) if np.isfinite(u.T_world_odom[0, 0])), None)
+
+    def _withhold(self, n_nodes: int, available_time: float) -> None:
+        """Withhold the online estimate from `available_time` on (until the next anchor)."""
+        self._updates.append(OnlineUpdate(available_time, np.full((3, 3), np.nan), n_nodes - 1, None))
+
     def _revoke(self, n_nodes: int, available_time: float) -> None:
         """Back to the global search: withhold the online estimate from `available_time` on and
         rebuild the pool from every submap's place-recognition candidates."""
@@ -401,7 +413,8 @@ class Localizer:
         self._online_graph = IncrementalPoseGraph(self.cfg.backend)
         self._anchored = {}
         self._attempt_cache = None
-        self._updates.append(OnlineUpdate(available_time, np.full((3, 3), np.nan), n_nodes - 1, None))
+        self._refutations = 0
+        self._withhold(n_nodes, available_time)
 
     # ------------------------------------------------------------------ public API
     def add_submap(self, submap: GroundSubmap, available_time: float | None = None) -> LocalizerEvent:
@@ -418,7 +431,7 @@ class Localizer:
         self.submaps.append(submap)
         self._nodes.append(self._node_of(submap.time))
         n_nodes = self._node_of(available_time) + 1
-        attempted = committed = revoked = False
+        attempted = committed = doubted = revoked = False
         if self.state == "pre":
             with stage("place recognition"):
                 patches, yaw_priors = self._matching.place_recognition_patches(submap)
@@ -448,7 +461,7 @@ class Localizer:
                     self._commit(sel2.inliers)
                     n_inliers = sel2.count
         else:
-            anchor = self._updates[-1].T_world_odom
+            anchor = self._latest_anchor().T_world_odom
             predicted = anchor @ self._odom_se2[self._nodes[-1]]
             patches = self._matching.near_patches(predicted[None, :2, 2])[0]
             prior = float(yaw_of(anchor))
@@ -458,9 +471,14 @@ class Localizer:
             self.pool = LoopClosureCandidates.concat([self.pool, new])
             sel = self._pool_inliers()
             n_inliers = sel.count + len(self.archive)
-            if self._fix_refuted(sel):
+            refuted = self._fix_refuted(sel)
+            self._refutations = self._refutations + 1 if refuted else 0
+            if refuted and self._refutations >= self.cfg.backend.fix_revoke_after_refutations:
                 revoked = True
                 self._revoke(n_nodes, available_time)
+            elif refuted:  # neither anchored on nor committed: the accepted set is in doubt
+                doubted = True
+                self._withhold(n_nodes, available_time)
             elif n_inliers:
                 self._anchor(self._gated(self._accepted(sel)), n_nodes, available_time)
                 self._commit(sel.inliers)
@@ -476,6 +494,7 @@ class Localizer:
             fix_committed=committed,
             seconds=time.perf_counter() - start,
             fix_revoked=revoked,
+            fix_doubted=doubted,
         )
         self.events.append(event)
         # matching's scratch arrays, freed between blocks that live on, would stay resident
@@ -521,12 +540,13 @@ class Localizer:
 
     def latest_estimate(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The online T_world_base (4, 4, world) at the latest frame and its (3, 3) covariance of
-        (x, y, yaw) in world axes, or (None, None) before the fix. The covariance is the anchor
-        frame's marginal carried along the odometry since (`propagate_covariance`; None without
+        (x, y, yaw) in world axes, or (None, None) before the fix and while the estimate is
+        withheld (after a refuting submap or a revoked fix). The covariance is the anchor frame's
+        marginal carried along the odometry since (`propagate_covariance`; None without
         `online_covariance`)."""
-        if not self._updates or self.state == "pre":  # before the fix, or it was revoked
+        update = self._updates[-1] if self._updates else None
+        if update is None or not np.isfinite(update.T_world_odom[0, 0]):  # before the fix, or withheld
             return None, None
-        update = self._updates[-1]
         k = len(self.frame_times) - 1
         T = lift_se2(update.T_world_odom @ self._odom_se2[k : k + 1], self.T_odom_base[k : k + 1])
         return self._to_world(T)[0], self._prediction(update, k)[1]

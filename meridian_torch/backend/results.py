@@ -45,6 +45,7 @@ class LocalizerEvent:
     fix_committed: bool  # the global fix was committed on this submap
     seconds: float
     fix_revoked: bool = False  # the submaps since the fix failed its gate: back to the global search
+    fix_doubted: bool = False  # they failed it, not yet enough times in a row: the estimate is withheld
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,9 @@ def _localize(cfg: MeridianConfig, reader: Any, ortho: Any, aerial_map: Any, out
         )
         if event.fix_committed:
             bar.write(f"==> global fix committed at submap {submap.index} ({event.n_inliers} inliers)")
+        if event.fix_doubted:
+            bar.write(f"==> global fix in doubt at submap {submap.index}: too few of the submaps since it agree; "
+                      "estimate withheld")
         if event.fix_revoked:
             bar.write(f"==> global fix revoked at submap {submap.index}: too few of the submaps since it agree; "
                       "searching the whole map again")

@@ -197,6 +197,7 @@ def write_outputs(
                 "fix_committed",
                 "seconds",
                 "fix_revoked",
+                "fix_doubted",
             ],
             [
                 [
@@ -211,6 +212,7 @@ def write_outputs(
                     int(e.fix_committed),
                     f"{e.seconds:.4f}",
                     int(e.fix_revoked),
+                    int(e.fix_doubted),
                 ]
                 for e in result.events
             ],
