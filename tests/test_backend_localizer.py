@@ -434,6 +434,29 @@ def test_a_fix_the_following_submaps_refute_is_revoked_and_the_estimate_withheld
     assert result.localized and _xy_error(result.T_world_base, world.gt).max() < 3.0
 
 
+@pytest.mark.parametrize("after_refutations", [1, 2, 3])
+def test_a_fix_refuted_by_that_many_submaps_in_a_row_is_revoked(after_refutations: int) -> None:
+    # the wrong fix of the test above, and no submap after it finds a match (so the truth cannot
+    # outvote it): every check refutes it; the first after_refutations - 1 only withhold
+    world = World(seed=3, n_frames=360)
+    world.corrupt_submaps = set(range(6))
+    world.bad_submaps = set(range(6, len(world.submap_frames)))
+    loc = Localizer(make_map(), _cfg(fix_revoke_after_refutations=after_refutations), world.odometry, world.times,
+                    matcher=world.matcher)
+    events = [loc.add_submap(s) for s in world.submaps()]
+    fix = next(e.submap_index for e in events if e.fix_committed)
+    first_refuted = fix + loc.cfg.backend.fix_min_inliers
+    assert first_refuted + after_refutations <= len(events)
+    assert [e.submap_index for e in events if e.fix_doubted] == list(
+        range(first_refuted, first_refuted + after_refutations - 1))
+    revoked = [e.submap_index for e in events if e.fix_revoked][0]
+    assert revoked == first_refuted + after_refutations - 1
+    # withheld from the first refuting submap until a new fix, if one comes
+    refix = next((e.time for e in events[revoked:] if e.fix_committed), np.inf)
+    withheld = (world.times >= events[first_refuted].time) & (world.times < refix)
+    assert withheld.any() and np.isnan(loc.online_estimate()[withheld]).all()
+
+
 def _sparse_world() -> tuple[World, int]:
     """A world whose right fix comes without failures at submap `fix`, after which 5 of the 9
     submaps find no match (4 of 9 agree, 44 %; fix + 10 agrees again); and that fix."""

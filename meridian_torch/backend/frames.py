@@ -33,6 +33,11 @@ class OnlineUpdate:
     node: int  # the frame the anchor was optimized at
     covariance: np.ndarray | None  # (3, 3) marginal covariance of that frame's (x, y, yaw), world axes
 
+    @property
+    def withheld(self) -> bool:
+        """A NaN anchor: the online estimate is withheld from `available_time` on."""
+        return not np.isfinite(self.T_world_odom[0, 0])
+
 
 class FrameBuffer:
     """Frame times and odometry poses that grow as frames arrive (capacity doubles, so a long

@@ -395,8 +395,8 @@ class Localizer:
         return agreeing < b.fix_revoke_below_fraction * since
 
     def _latest_anchor(self) -> OnlineUpdate | None:
-        """The latest update that gave an estimate (a withheld one has a NaN anchor)."""
-        return next((u for u in reversed(self._updates) if np.isfinite(u.T_world_odom[0, 0])), None)
+        """The latest update that gave an estimate (not `withheld`)."""
+        return next((u for u in reversed(self._updates) if not u.withheld), None)
 
     def _withhold(self, n_nodes: int, available_time: float) -> None:
         """Withhold the online estimate from `available_time` on (until the next anchor)."""
@@ -518,7 +518,7 @@ class Localizer:
         which = self._update_of_frames()
         anchors = np.stack([u.T_world_odom for u in self._updates])
         ok = which >= 0
-        ok[ok] = np.isfinite(anchors[which[ok], 0, 0])  # a revocation's update withholds the estimate
+        ok[ok] = np.isfinite(anchors[which[ok], 0, 0])  # a withheld update (refuting submap, revocation)
         out[ok] = lift_se2(anchors[which[ok]] @ self._odom_se2[ok], self.T_odom_base[ok])
         return self._to_world(out)
 
@@ -545,7 +545,7 @@ class Localizer:
         marginal carried along the odometry since (`propagate_covariance`; None without
         `online_covariance`)."""
         update = self._updates[-1] if self._updates else None
-        if update is None or not np.isfinite(update.T_world_odom[0, 0]):  # before the fix, or withheld
+        if update is None or update.withheld:  # before the fix, or withheld
             return None, None
         k = len(self.frame_times) - 1
         T = lift_se2(update.T_world_odom @ self._odom_se2[k : k + 1], self.T_odom_base[k : k + 1])
